@@ -1,0 +1,1 @@
+"""fleetmap's front ends: the two HTTP services and the `fleetmap` command line."""

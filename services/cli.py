@@ -1,0 +1,133 @@
+"""`fleetmap`: the command line for robots' data, the services and the main job."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from shared.camera import Intrinsics
+from shared.errors import FleetmapError
+
+log = logging.getLogger("fleetmap")
+
+
+def _add_camera_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("camera overrides (default: camera.json, else TUM fr1)")
+    for name in ("fx", "fy", "cx", "cy"):
+        g.add_argument(f"--{name}", type=float)
+    g.add_argument("--depth-scale", type=float, help="depth units per metre (TUM: 5000)")
+
+
+def _add_keyframe_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("keyframe selection")
+    g.add_argument("--kf-translation", type=float, default=0.05, metavar="M",
+                   help="new keyframe after moving this far (default 0.05 m)")
+    g.add_argument("--kf-rotation", type=float, default=5.0, metavar="DEG",
+                   help="new keyframe after turning this much (default 5 deg)")
+    g.add_argument("--kf-interval", type=float, default=1.0, metavar="S",
+                   help="new keyframe after this long at the latest (default 1 s)")
+
+
+def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
+    overrides = {k: getattr(args, k) for k in ("fx", "fy", "cx", "cy", "depth_scale")
+                 if getattr(args, k, None) is not None}
+    if not overrides:
+        return None
+    from shared.dataset import read_recording
+
+    base = read_recording(robot_dir).intrinsics.to_dict()
+    return Intrinsics.from_dict({**base, **overrides})
+
+
+def _policy(args: argparse.Namespace):
+    from shared.keyframes import KeyframePolicy
+
+    return KeyframePolicy(args.kf_translation, args.kf_rotation, args.kf_interval)
+
+
+def cmd_extract(args: argparse.Namespace) -> int:
+    """Write one encoded frame structure per keyframe of a robot folder."""
+    from shared.dataset import parse_robot_arg, read_recording
+    from shared.extract import FrameExtractor, extract_recording, keyframe_indices
+    from shared.frame import encode
+    from shared.vocabulary import load_vocabulary
+
+    name, robot_dir = parse_robot_arg(args.robot)
+    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir))
+    extractor = FrameExtractor(load_vocabulary(args.vocab))
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    n = len(keyframe_indices(rec, _policy(args)))
+    total = 0
+    frames = extract_recording(rec, extractor, _policy(args))
+    for frame in tqdm(frames, total=n, desc=f"extract {rec.robot_id}", unit="kf"):
+        data = encode(frame)
+        (out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf").write_bytes(data)
+        total += len(data)
+    print(f"{n} keyframes of {len(rec)} frames -> {out} "
+          f"({total / max(n, 1) / 1024:.1f} KiB per frame)")
+    return 0
+
+
+def cmd_vocab_train(args: argparse.Namespace) -> int:
+    """Train the GIST codebook and SIFT words (thesis Algorithm 1)."""
+    from shared.training import collect_images, train_from_images
+
+    paths = collect_images(args.inputs, stride=args.stride)
+    vocab = train_from_images(
+        paths, n_gist_clusters=args.gist_clusters, n_words=args.words, seed=args.seed,
+        progress=lambda it: tqdm(it, total=len(paths), desc="describe", unit="img"),
+        source=args.source or ", ".join(str(i) for i in args.inputs))
+    vocab.save(args.output)
+    print(f"vocabulary {vocab.vocab_id}: {len(vocab.gist_centroids)} GIST clusters, "
+          f"{vocab.n_words} words from {len(paths)} images -> {args.output}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("extract", help="frame structures of a robot folder's keyframes")
+    p.add_argument("robot", metavar="[NAME=]ROBOT_DIR")
+    p.add_argument("-o", "--output", required=True, metavar="FRAMES_DIR")
+    p.add_argument("--vocab", help="vocabulary file (default: the shipped one)")
+    _add_camera_args(p)
+    _add_keyframe_args(p)
+    p.set_defaults(func=cmd_extract)
+
+    vocab = sub.add_parser("vocab", help="vocabularies").add_subparsers(dest="vocab_cmd",
+                                                                         required=True)
+    p = vocab.add_parser("train", help="train a vocabulary (thesis Algorithm 1)")
+    p.add_argument("inputs", nargs="+", metavar="IMAGES_OR_ROBOT_DIRS")
+    p.add_argument("-o", "--output", required=True, metavar="FILE")
+    p.add_argument("--gist-clusters", type=int, default=8)
+    p.add_argument("--words", type=int, default=500)
+    p.add_argument("--stride", type=int, default=1, help="every n-th image of a folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--source", default="", help="text recorded as the training source")
+    p.set_defaults(func=cmd_vocab_train)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except FleetmapError as exc:
+        print(f"fleetmap: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fleetmap: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

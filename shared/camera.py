@@ -1,0 +1,116 @@
+"""Pinhole intrinsics and RGB-D back-projection."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.errors import BadInput, BadRobotData
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole camera: focal lengths and principal point in pixels, depth units per metre."""
+
+    fx: float = 517.3
+    fy: float = 516.5
+    cx: float = 318.6
+    cy: float = 255.3
+    depth_scale: float = 5000.0
+    width: int = 640
+    height: int = 480
+
+    def __post_init__(self) -> None:
+        values = [self.fx, self.fy, self.cx, self.cy, self.depth_scale]
+        if not all(np.isfinite(v) and v > 0 for v in values):
+            raise BadInput(f"Intrinsics must be finite and positive, got {asdict(self)}")
+        if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
+            raise BadInput(f"Image size out of range: {self.width}x{self.height}")
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 camera matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Intrinsics:
+        known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+        try:
+            return cls(**{k: (int(v) if k in ("width", "height") else float(v))
+                          for k, v in known.items()})
+        except (TypeError, ValueError) as exc:
+            raise BadInput(f"Bad intrinsics {d!r}: {exc}") from exc
+
+    @classmethod
+    def from_json_file(cls, path: Path) -> Intrinsics:
+        try:
+            return cls.from_dict(json.loads(Path(path).read_text()))
+        except (OSError, json.JSONDecodeError, BadInput) as exc:
+            raise BadRobotData(f"Cannot read camera file {path}: {exc}") from exc
+
+
+#: TUM RGB-D freiburg1 defaults, used where a robot folder has no camera.json.
+TUM_FR1 = Intrinsics()
+
+
+def backproject_pixels(
+    uv: np.ndarray, depth: np.ndarray, intr: Intrinsics, max_depth: float = 8.0,
+    edge_threshold: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lift pixels into camera-frame 3D points through a depth image.
+
+    Parameters
+    ----------
+    uv : ndarray of shape (N, 2), pixel positions (x right, y down).
+    depth : ndarray of shape (H, W), uint16 raw depth (metres = value / depth_scale).
+    intr : the camera intrinsics.
+    max_depth : readings beyond this many metres are rejected.
+    edge_threshold : a pixel whose 3x3 neighbourhood spans more than this relative
+        depth range sits on a depth edge and is rejected (its depth is unreliable).
+
+    Returns
+    -------
+    points : ndarray of shape (N, 3), metres in the camera frame (zeros where invalid).
+    valid : ndarray of shape (N,), bool.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if depth.ndim != 2:
+        raise BadInput(f"Expected depth of shape (H, W), got {depth.shape}")
+    h, w = depth.shape
+    u = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
+    z = depth[v, u].astype(np.float64) / intr.depth_scale
+    valid = (z > 0) & (z < max_depth)
+    if edge_threshold is not None and len(u):
+        pad = np.pad(depth.astype(np.float64), 1, mode="edge")
+        win = np.stack([pad[v + dy, u + dx] for dy in range(3) for dx in range(3)], axis=1)
+        win = win / intr.depth_scale
+        missing = (win <= 0).any(axis=1)
+        spread = win.max(axis=1) - np.where(win > 0, win, np.inf).min(axis=1)
+        valid &= ~missing & (spread <= edge_threshold * np.maximum(z, 1e-6))
+    x = (uv[:, 0] - intr.cx) * z / intr.fx
+    y = (uv[:, 1] - intr.cy) * z / intr.fy
+    pts = np.stack([x, y, z], axis=1)
+    pts[~valid] = 0.0
+    return pts, valid
+
+
+def depth_to_points(depth: np.ndarray, intr: Intrinsics, stride: int = 1,
+                    max_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+    """Every `stride`-th pixel with valid depth as camera-frame points.
+
+    Returns points of shape (M, 3) in metres and their pixel indices of shape (M, 2) (x, y).
+    """
+    h, w = depth.shape
+    vs, us = np.mgrid[0:h:stride, 0:w:stride]
+    z = depth[vs, us].astype(np.float64) / intr.depth_scale
+    ok = (z > 0) & (z < max_depth)
+    us, vs, z = us[ok], vs[ok], z[ok]
+    pts = np.stack([(us - intr.cx) * z / intr.fx, (vs - intr.cy) * z / intr.fy, z], axis=1)
+    return pts, np.stack([us, vs], axis=1)

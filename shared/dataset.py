@@ -1,0 +1,188 @@
+"""Reading a robot's recording in the TUM RGB-D layout (see CONTRACT.md section 1)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shared.camera import TUM_FR1, Intrinsics
+from shared.errors import BadRobotData
+from shared.geometry import pose_from_tum
+
+log = logging.getLogger(__name__)
+
+#: Colour, depth and pose are associated by nearest timestamp within this many seconds.
+MAX_ASSOCIATION_GAP_S = 0.02
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One associated RGB-D frame of a recording (images are read lazily)."""
+
+    stamp: float
+    rgb_path: Path
+    depth_path: Path | None
+    T_map_cam: np.ndarray | None  # (4, 4) camera-to-map, or None without ground truth
+
+
+@dataclass
+class Recording:
+    """A robot folder: its id, intrinsics and associated frames in time order."""
+
+    robot_id: str
+    root: Path
+    intrinsics: Intrinsics
+    frames: list[FrameRecord] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+
+def read_list(path: Path) -> list[tuple[float, list[str]]]:
+    """Parse a TUM text list: '#' comments and non-numeric lines skipped, sorted by time."""
+    if not path.is_file():
+        raise BadRobotData(f"Missing file: {path}")
+    rows = []
+    for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            log.debug("%s:%d: skipping non-numeric line", path, n)
+            continue
+        if not np.isfinite(stamp):
+            raise BadRobotData(f"{path}:{n}: non-finite timestamp")
+        rows.append((stamp, parts[1:]))
+    rows.sort(key=lambda r: r[0])
+    return rows
+
+
+def associate(a: np.ndarray, b: np.ndarray, max_gap: float) -> list[tuple[int, int]]:
+    """Greedy one-to-one nearest-timestamp association, as TUM's associate.py.
+
+    a, b: ndarray of shape (N,) and (M,), sorted stamps. Returns index pairs (i, j).
+    """
+    if len(a) == 0 or len(b) == 0:
+        return []
+    j = np.clip(np.searchsorted(b, a), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(a), int)
+    cand = []
+    for i in range(len(a)):
+        for jj in {int(j[i]) - 1, int(j[i])} if len(b) > 1 else {0}:
+            gap = abs(a[i] - b[jj])
+            if gap <= max_gap:
+                cand.append((gap, i, jj))
+    cand.sort()
+    used_a, used_b, pairs = set(), set(), []
+    for _, i, jj in cand:
+        if i not in used_a and jj not in used_b:
+            used_a.add(i)
+            used_b.add(jj)
+            pairs.append((i, jj))
+    return sorted(pairs)
+
+
+def _read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    rows = read_list(path)
+    stamps, poses = [], []
+    for stamp, vals in rows:
+        if len(vals) < 7:
+            raise BadRobotData(f"{path}: expected 'timestamp tx ty tz qx qy qz qw', got {vals}")
+        try:
+            v = np.array(vals[:7], dtype=np.float64)
+            poses.append(pose_from_tum(v[:3], v[3:7]))
+        except ValueError as exc:
+            raise BadRobotData(f"{path}: bad pose at t={stamp}: {exc}") from exc
+        stamps.append(stamp)
+    return np.array(stamps), poses
+
+
+def _resolve(root: Path, name: str) -> Path:
+    p = (root / name).resolve()
+    if not p.is_relative_to(root.resolve()):
+        raise BadRobotData(f"{root}: list entry {name!r} points outside the robot folder")
+    return p
+
+
+def read_recording(root: str | Path, robot_id: str | None = None,
+                   intrinsics: Intrinsics | None = None, require_depth: bool = False,
+                   require_poses: bool = False) -> Recording:
+    """Read a robot folder in the TUM layout.
+
+    Colour frames are kept only where a depth frame (and a pose, if `groundtruth.txt`
+    exists) lies within `MAX_ASSOCIATION_GAP_S`. Intrinsics come from `intrinsics`, else
+    `camera.json`, else the TUM fr1 defaults.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise BadRobotData(f"Robot folder not found: {root}")
+    robot_id = robot_id or root.resolve().name
+    if intrinsics is None:
+        cam = root / "camera.json"
+        intrinsics = Intrinsics.from_json_file(cam) if cam.is_file() else TUM_FR1
+    rgb = read_list(root / "rgb.txt")
+    if not rgb:
+        raise BadRobotData(f"{root / 'rgb.txt'} lists no frames")
+    rgb_t = np.array([r[0] for r in rgb])
+    has_depth = (root / "depth.txt").is_file()
+    if require_depth and not has_depth:
+        raise BadRobotData(f"Missing file: {root / 'depth.txt'}")
+    depth = read_list(root / "depth.txt") if has_depth else []
+    depth_t = np.array([r[0] for r in depth])
+    gt = root / "groundtruth.txt"
+    if require_poses and not gt.is_file():
+        raise BadRobotData(f"Missing file: {gt}")
+    pose_t, poses = _read_poses(gt) if gt.is_file() else (np.array([]), [])
+
+    d_of = dict(associate(rgb_t, depth_t, MAX_ASSOCIATION_GAP_S)) if has_depth else {}
+    p_of = dict(associate(rgb_t, pose_t, MAX_ASSOCIATION_GAP_S)) if len(poses) else {}
+    frames = []
+    for i, (stamp, vals) in enumerate(rgb):
+        if has_depth and i not in d_of or len(poses) and i not in p_of:
+            continue
+        if not vals:
+            raise BadRobotData(f"{root / 'rgb.txt'}: no file name at t={stamp}")
+        frames.append(FrameRecord(
+            stamp=stamp,
+            rgb_path=_resolve(root, vals[0]),
+            depth_path=_resolve(root, depth[d_of[i]][1][0]) if has_depth else None,
+            T_map_cam=poses[p_of[i]] if len(poses) else None,
+        ))
+    if not frames:
+        raise BadRobotData(f"{root}: no colour frame has depth and pose within "
+                           f"{MAX_ASSOCIATION_GAP_S} s")
+    log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
+    return Recording(robot_id=robot_id, root=root, intrinsics=intrinsics, frames=frames)
+
+
+def load_rgb(path: Path) -> np.ndarray:
+    """Colour image as uint8 (H, W, 3) BGR; raises BadRobotData if missing or unreadable."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise BadRobotData(f"Cannot read colour image {path}")
+    return img
+
+
+def load_depth(path: Path) -> np.ndarray:
+    """Depth image as uint16 (H, W); raises BadRobotData if missing, unreadable or not 16-bit."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BadRobotData(f"Cannot read depth image {path}")
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise BadRobotData(f"Depth image {path} must be 16-bit single-channel, "
+                           f"got {img.dtype} {img.shape}")
+    return img
+
+
+def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
+    """'NAME=DIR' or 'DIR' as (name or None, path)."""
+    if "=" in arg and not Path(arg).exists():
+        name, _, path = arg.partition("=")
+        if name:
+            return name, Path(path)
+    return None, Path(arg)

@@ -1,0 +1,46 @@
+"""Domain errors, shared by the core, the CLI and the services.
+
+Each service maps these to HTTP answers in one exception handler; the CLI prints them.
+"""
+
+
+class FleetmapError(Exception):
+    """Base class of every error fleetmap raises on purpose."""
+
+
+class BadInput(FleetmapError, ValueError):
+    """Input of the wrong shape, type, size or value."""
+
+
+class BadFrame(BadInput):
+    """An encoded frame structure that cannot be decoded or fails validation."""
+
+
+class BadRobotData(FleetmapError):
+    """A robot folder that is missing, incomplete or unreadable."""
+
+
+class BadVocabulary(FleetmapError):
+    """A vocabulary file that is missing, of another format version or inconsistent."""
+
+
+class UnknownRobot(FleetmapError, KeyError):
+    """A robot id the place database does not know."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it plain
+        return str(self.args[0]) if self.args else "unknown robot"
+
+
+class UnknownKeyframe(FleetmapError, KeyError):
+    """A keyframe id the place database does not know."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else "unknown keyframe"
+
+
+class NotEnoughCorrespondences(FleetmapError):
+    """Too few (inlier) correspondences to fit or verify a transform."""
+
+
+class PayloadTooLarge(BadInput):
+    """A body or field larger than the configured limit."""

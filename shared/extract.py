@@ -1,0 +1,78 @@
+"""From an RGB-D keyframe to its frame structure (thesis eq. 2.7): one pipeline stage."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.camera import Intrinsics, backproject_pixels
+from shared.dataset import Recording, load_depth, load_rgb
+from shared.errors import BadInput
+from shared.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
+from shared.features import FeatureParams, detect_and_describe
+from shared.frame import Frame
+from shared.geometry import apply
+from shared.gist import compute_gist
+from shared.keyframes import KeyframePolicy, select_keyframes
+from shared.vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FrameExtractor:
+    """Computes frame structures with one vocabulary and one set of detector settings."""
+
+    vocabulary: Vocabulary
+    feature_params: FeatureParams = field(default_factory=lambda: FEATURE_DEFAULTS)
+
+    def __call__(self, robot_id: str, stamp: float, rgb: np.ndarray,
+                 depth: np.ndarray | None = None, intrinsics: Intrinsics | None = None,
+                 T_map_cam: np.ndarray | None = None) -> Frame:
+        """Frame structure of one keyframe.
+
+        Parameters
+        ----------
+        rgb : ndarray of shape (H, W, 3) uint8 BGR (or (H, W) grey).
+        depth : ndarray of shape (H, W) uint16, or None. With depth, `intrinsics` and
+            `T_map_cam`, each feature gets its 3D point in the robot's map frame.
+        T_map_cam : ndarray of shape (4, 4), camera-to-map pose, or None.
+        """
+        if rgb.ndim not in (2, 3):
+            raise BadInput(f"Expected an image of shape (H, W[, 3]), got {rgb.shape}")
+        h, w = rgb.shape[:2]
+        gist = compute_gist(rgb, self.vocabulary.gist_params)
+        local = detect_and_describe(rgb, self.feature_params)
+        ids, counts = self.vocabulary.bow(local.descriptors)
+        points = valid = None
+        if depth is not None and intrinsics is not None and T_map_cam is not None:
+            if depth.shape != (h, w):
+                raise BadInput(f"Depth of shape {depth.shape} does not match colour {(h, w)}")
+            p_cam, valid = backproject_pixels(local.keypoints, depth, intrinsics)
+            points = np.where(valid[:, None], apply(T_map_cam, p_cam), 0.0).astype(np.float32)
+        return Frame(robot_id=robot_id, stamp=stamp, gist=gist.astype(np.float16),
+                     keypoints=local.keypoints, descriptors=local.descriptors,
+                     bow_ids=ids, bow_counts=counts, T_map_cam=T_map_cam, points=points,
+                     point_valid=valid, width=w, height=h, vocab_id=self.vocabulary.vocab_id,
+                     intrinsics=intrinsics)
+
+
+def keyframe_indices(rec: Recording, policy: KeyframePolicy = KeyframePolicy()) -> list[int]:
+    """Indices into `rec.frames` of the recording's keyframes."""
+    return select_keyframes([f.stamp for f in rec.frames], [f.T_map_cam for f in rec.frames],
+                            policy)
+
+
+def extract_recording(rec: Recording, extractor: FrameExtractor,
+                      policy: KeyframePolicy = KeyframePolicy()) -> Iterator[Frame]:
+    """Frame structures of a recording's keyframes, in time order (lazy: one image pair
+    is in memory at a time)."""
+    for i in keyframe_indices(rec, policy):
+        rec_frame = rec.frames[i]
+        rgb = load_rgb(rec_frame.rgb_path)
+        depth = load_depth(rec_frame.depth_path) if rec_frame.depth_path else None
+        yield extractor(rec.robot_id, rec_frame.stamp, rgb, depth, rec.intrinsics,
+                        rec_frame.T_map_cam)
