@@ -24,17 +24,35 @@ def _add_camera_args(p: argparse.ArgumentParser) -> None:
 
 def _add_keyframe_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("keyframe selection")
-    g.add_argument("--kf-translation", type=float, default=0.05, metavar="M",
-                   help="new keyframe after moving this far (default 0.05 m)")
-    g.add_argument("--kf-rotation", type=float, default=5.0, metavar="DEG",
-                   help="new keyframe after turning this much (default 5 deg)")
-    g.add_argument("--kf-interval", type=float, default=1.0, metavar="S",
-                   help="new keyframe after this long at the latest (default 1 s)")
+    g.add_argument(
+        "--kf-translation",
+        type=float,
+        default=0.05,
+        metavar="M",
+        help="new keyframe after moving this far (default 0.05 m)",
+    )
+    g.add_argument(
+        "--kf-rotation",
+        type=float,
+        default=5.0,
+        metavar="DEG",
+        help="new keyframe after turning this much (default 5 deg)",
+    )
+    g.add_argument(
+        "--kf-interval",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="new keyframe after this long at the latest (default 1 s)",
+    )
 
 
 def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
-    overrides = {k: getattr(args, k) for k in ("fx", "fy", "cx", "cy", "depth_scale")
-                 if getattr(args, k, None) is not None}
+    overrides = {
+        k: getattr(args, k)
+        for k in ("fx", "fy", "cx", "cy", "depth_scale")
+        if getattr(args, k, None) is not None
+    }
     if not overrides:
         return None
     from shared.dataset import read_recording
@@ -68,8 +86,10 @@ def cmd_extract(args: argparse.Namespace) -> int:
         data = encode(frame)
         (out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf").write_bytes(data)
         total += len(data)
-    print(f"{n} keyframes of {len(rec)} frames -> {out} "
-          f"({total / max(n, 1) / 1024:.1f} KiB per frame)")
+    print(
+        f"{n} keyframes of {len(rec)} frames -> {out} "
+        f"({total / max(n, 1) / 1024:.1f} KiB per frame)"
+    )
     return 0
 
 
@@ -79,12 +99,18 @@ def cmd_vocab_train(args: argparse.Namespace) -> int:
 
     paths = collect_images(args.inputs, stride=args.stride)
     vocab = train_from_images(
-        paths, n_gist_clusters=args.gist_clusters, n_words=args.words, seed=args.seed,
+        paths,
+        n_gist_clusters=args.gist_clusters,
+        n_words=args.words,
+        seed=args.seed,
         progress=lambda it: tqdm(it, total=len(paths), desc="describe", unit="img"),
-        source=args.source or ", ".join(str(i) for i in args.inputs))
+        source=args.source or ", ".join(str(i) for i in args.inputs),
+    )
     vocab.save(args.output)
-    print(f"vocabulary {vocab.vocab_id}: {len(vocab.gist_centroids)} GIST clusters, "
-          f"{vocab.n_words} words from {len(paths)} images -> {args.output}")
+    print(
+        f"vocabulary {vocab.vocab_id}: {len(vocab.gist_centroids)} GIST clusters, "
+        f"{vocab.n_words} words from {len(paths)} images -> {args.output}"
+    )
     return 0
 
 
@@ -101,8 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_keyframe_args(p)
     p.set_defaults(func=cmd_extract)
 
-    vocab = sub.add_parser("vocab", help="vocabularies").add_subparsers(dest="vocab_cmd",
-                                                                         required=True)
+    vocab = sub.add_parser("vocab", help="vocabularies").add_subparsers(
+        dest="vocab_cmd", required=True
+    )
     p = vocab.add_parser("train", help="train a vocabulary (thesis Algorithm 1)")
     p.add_argument("inputs", nargs="+", metavar="IMAGES_OR_ROBOT_DIRS")
     p.add_argument("-o", "--output", required=True, metavar="FILE")

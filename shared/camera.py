@@ -42,8 +42,9 @@ class Intrinsics:
     def from_dict(cls, d: dict) -> Intrinsics:
         known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
         try:
-            return cls(**{k: (int(v) if k in ("width", "height") else float(v))
-                          for k, v in known.items()})
+            return cls(
+                **{k: (int(v) if k in ("width", "height") else float(v)) for k, v in known.items()}
+            )
         except (TypeError, ValueError) as exc:
             raise BadInput(f"Bad intrinsics {d!r}: {exc}") from exc
 
@@ -60,7 +61,10 @@ TUM_FR1 = Intrinsics()
 
 
 def backproject_pixels(
-    uv: np.ndarray, depth: np.ndarray, intr: Intrinsics, max_depth: float = 8.0,
+    uv: np.ndarray,
+    depth: np.ndarray,
+    intr: Intrinsics,
+    max_depth: float = 8.0,
     edge_threshold: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Lift pixels into camera-frame 3D points through a depth image.
@@ -101,8 +105,9 @@ def backproject_pixels(
     return pts, valid
 
 
-def depth_to_points(depth: np.ndarray, intr: Intrinsics, stride: int = 1,
-                    max_depth: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+def depth_to_points(
+    depth: np.ndarray, intr: Intrinsics, stride: int = 1, max_depth: float = 8.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Every `stride`-th pixel with valid depth as camera-frame points.
 
     Returns points of shape (M, 3) in metres and their pixel indices of shape (M, 2) (x, y).

@@ -109,9 +109,13 @@ def _resolve(root: Path, name: str) -> Path:
     return p
 
 
-def read_recording(root: str | Path, robot_id: str | None = None,
-                   intrinsics: Intrinsics | None = None, require_depth: bool = False,
-                   require_poses: bool = False) -> Recording:
+def read_recording(
+    root: str | Path,
+    robot_id: str | None = None,
+    intrinsics: Intrinsics | None = None,
+    require_depth: bool = False,
+    require_poses: bool = False,
+) -> Recording:
     """Read a robot folder in the TUM layout.
 
     Colour frames are kept only where a depth frame (and a pose, if `groundtruth.txt`
@@ -147,15 +151,18 @@ def read_recording(root: str | Path, robot_id: str | None = None,
             continue
         if not vals:
             raise BadRobotData(f"{root / 'rgb.txt'}: no file name at t={stamp}")
-        frames.append(FrameRecord(
-            stamp=stamp,
-            rgb_path=_resolve(root, vals[0]),
-            depth_path=_resolve(root, depth[d_of[i]][1][0]) if has_depth else None,
-            T_map_cam=poses[p_of[i]] if len(poses) else None,
-        ))
+        frames.append(
+            FrameRecord(
+                stamp=stamp,
+                rgb_path=_resolve(root, vals[0]),
+                depth_path=_resolve(root, depth[d_of[i]][1][0]) if has_depth else None,
+                T_map_cam=poses[p_of[i]] if len(poses) else None,
+            )
+        )
     if not frames:
-        raise BadRobotData(f"{root}: no colour frame has depth and pose within "
-                           f"{MAX_ASSOCIATION_GAP_S} s")
+        raise BadRobotData(
+            f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
+        )
     log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
     return Recording(robot_id=robot_id, root=root, intrinsics=intrinsics, frames=frames)
 
@@ -174,8 +181,9 @@ def load_depth(path: Path) -> np.ndarray:
     if img is None:
         raise BadRobotData(f"Cannot read depth image {path}")
     if img.dtype != np.uint16 or img.ndim != 2:
-        raise BadRobotData(f"Depth image {path} must be 16-bit single-channel, "
-                           f"got {img.dtype} {img.shape}")
+        raise BadRobotData(
+            f"Depth image {path} must be 16-bit single-channel, got {img.dtype} {img.shape}"
+        )
     return img
 
 

@@ -29,9 +29,15 @@ class FrameExtractor:
     vocabulary: Vocabulary
     feature_params: FeatureParams = field(default_factory=lambda: FEATURE_DEFAULTS)
 
-    def __call__(self, robot_id: str, stamp: float, rgb: np.ndarray,
-                 depth: np.ndarray | None = None, intrinsics: Intrinsics | None = None,
-                 T_map_cam: np.ndarray | None = None) -> Frame:
+    def __call__(
+        self,
+        robot_id: str,
+        stamp: float,
+        rgb: np.ndarray,
+        depth: np.ndarray | None = None,
+        intrinsics: Intrinsics | None = None,
+        T_map_cam: np.ndarray | None = None,
+    ) -> Frame:
         """Frame structure of one keyframe.
 
         Parameters
@@ -53,26 +59,40 @@ class FrameExtractor:
                 raise BadInput(f"Depth of shape {depth.shape} does not match colour {(h, w)}")
             p_cam, valid = backproject_pixels(local.keypoints, depth, intrinsics)
             points = np.where(valid[:, None], apply(T_map_cam, p_cam), 0.0).astype(np.float32)
-        return Frame(robot_id=robot_id, stamp=stamp, gist=gist.astype(np.float16),
-                     keypoints=local.keypoints, descriptors=local.descriptors,
-                     bow_ids=ids, bow_counts=counts, T_map_cam=T_map_cam, points=points,
-                     point_valid=valid, width=w, height=h, vocab_id=self.vocabulary.vocab_id,
-                     intrinsics=intrinsics)
+        return Frame(
+            robot_id=robot_id,
+            stamp=stamp,
+            gist=gist.astype(np.float16),
+            keypoints=local.keypoints,
+            descriptors=local.descriptors,
+            bow_ids=ids,
+            bow_counts=counts,
+            T_map_cam=T_map_cam,
+            points=points,
+            point_valid=valid,
+            width=w,
+            height=h,
+            vocab_id=self.vocabulary.vocab_id,
+            intrinsics=intrinsics,
+        )
 
 
-def keyframe_indices(rec: Recording, policy: KeyframePolicy = KeyframePolicy()) -> list[int]:
+def keyframe_indices(rec: Recording, policy: KeyframePolicy | None = None) -> list[int]:
     """Indices into `rec.frames` of the recording's keyframes."""
-    return select_keyframes([f.stamp for f in rec.frames], [f.T_map_cam for f in rec.frames],
-                            policy)
+    return select_keyframes(
+        [f.stamp for f in rec.frames], [f.T_map_cam for f in rec.frames], policy
+    )
 
 
-def extract_recording(rec: Recording, extractor: FrameExtractor,
-                      policy: KeyframePolicy = KeyframePolicy()) -> Iterator[Frame]:
+def extract_recording(
+    rec: Recording, extractor: FrameExtractor, policy: KeyframePolicy | None = None
+) -> Iterator[Frame]:
     """Frame structures of a recording's keyframes, in time order (lazy: one image pair
     is in memory at a time)."""
     for i in keyframe_indices(rec, policy):
         rec_frame = rec.frames[i]
         rgb = load_rgb(rec_frame.rgb_path)
         depth = load_depth(rec_frame.depth_path) if rec_frame.depth_path else None
-        yield extractor(rec.robot_id, rec_frame.stamp, rgb, depth, rec.intrinsics,
-                        rec_frame.T_map_cam)
+        yield extractor(
+            rec.robot_id, rec_frame.stamp, rgb, depth, rec.intrinsics, rec_frame.T_map_cam
+        )

@@ -70,9 +70,12 @@ def _pack_octave(size: float, max_octave: int) -> int:
 
 def _mser_keypoints(gray: np.ndarray, p: FeatureParams) -> list[cv2.KeyPoint]:
     max_area = int(p.mser_max_area_fraction * gray.shape[0] * gray.shape[1])
-    mser = cv2.MSER_create(delta=p.mser_delta, min_area=p.mser_min_area,
-                           max_area=max(max_area, p.mser_min_area + 1),
-                           max_variation=p.mser_max_variation)
+    mser = cv2.MSER_create(
+        delta=p.mser_delta,
+        min_area=p.mser_min_area,
+        max_area=max(max_area, p.mser_min_area + 1),
+        max_variation=p.mser_max_variation,
+    )
     mser.setMinDiversity(p.mser_min_diversity)
     regions, _ = mser.detectRegions(gray)
     if not regions:
@@ -83,8 +86,10 @@ def _mser_keypoints(gray: np.ndarray, p: FeatureParams) -> list[cv2.KeyPoint]:
     pix = np.concatenate(regions).astype(np.float64)
     centres = np.add.reduceat(pix, starts, axis=0) / counts[:, None]
     diam = 2.0 * np.sqrt(counts / np.pi)
-    return [cv2.KeyPoint(float(x), float(y), float(max(d * p.region_scale, 4.0)))
-            for (x, y), d in zip(centres, diam, strict=True)]
+    return [
+        cv2.KeyPoint(float(x), float(y), float(max(d * p.region_scale, 4.0)))
+        for (x, y), d in zip(centres, diam, strict=True)
+    ]
 
 
 def _strength(gray: np.ndarray, kps: list[cv2.KeyPoint]) -> np.ndarray:
@@ -107,18 +112,23 @@ def _dedupe(kps: list[cv2.KeyPoint], strength: np.ndarray, radius: float) -> lis
     keep = []
     for i in order:
         key = (int(xy[i, 0] // radius), int(xy[i, 1] // radius))
-        near = [j for dx in (-1, 0, 1) for dy in (-1, 0, 1)
-                for j in cell.get((key[0] + dx, key[1] + dy), [])]
-        if any(np.hypot(*(xy[i] - xy[j])) < radius and
-               abs(np.log(size[i] / size[j])) < 0.3 for j in near):
+        near = [
+            j
+            for dx in (-1, 0, 1)
+            for dy in (-1, 0, 1)
+            for j in cell.get((key[0] + dx, key[1] + dy), [])
+        ]
+        if any(
+            np.hypot(*(xy[i] - xy[j])) < radius and abs(np.log(size[i] / size[j])) < 0.3
+            for j in near
+        ):
             continue
         cell.setdefault(key, []).append(i)
         keep.append(int(i))
     return keep
 
 
-def detect_and_describe(image: np.ndarray, params: FeatureParams = DEFAULT_PARAMS
-                        ) -> LocalFeatures:
+def detect_and_describe(image: np.ndarray, params: FeatureParams = DEFAULT_PARAMS) -> LocalFeatures:
     """MSER+SIFT features of one image, at most `params.max_features`, strongest first.
 
     Parameters

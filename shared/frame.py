@@ -135,11 +135,18 @@ def validate(f: Frame) -> None:
     if f.points is not None:
         f.points = _arr(f.points, np.float32, (n, 3), "points")
         f.point_valid = _arr(f.point_valid, np.bool_, (n,), "point_valid")
-    if not (isinstance(f.width, int) and isinstance(f.height, int)
-            and 0 < f.width <= 16384 and 0 < f.height <= 16384):
+    if not (
+        isinstance(f.width, int)
+        and isinstance(f.height, int)
+        and 0 < f.width <= 16384
+        and 0 < f.height <= 16384
+    ):
         raise BadInput(f"Image size out of range: {f.width}x{f.height}")
-    if n and (np.any(f.keypoints < -1) or np.any(f.keypoints[:, 0] > f.width + 1)
-              or np.any(f.keypoints[:, 1] > f.height + 1)):
+    if n and (
+        np.any(f.keypoints < -1)
+        or np.any(f.keypoints[:, 0] > f.width + 1)
+        or np.any(f.keypoints[:, 1] > f.height + 1)
+    ):
         raise BadInput(f"keypoints outside the {f.width}x{f.height} image")
     if not isinstance(f.vocab_id, str) or len(f.vocab_id) > 64:
         raise BadInput("vocab_id must be a string of at most 64 characters")
@@ -148,19 +155,31 @@ def validate(f: Frame) -> None:
 def encode(f: Frame) -> bytes:
     """Serialise a validated frame to the version-1 wire format."""
     validate(f)
-    flags = (FLAG_POSE * (f.T_map_cam is not None) | FLAG_POINTS * (f.points is not None)
-             | FLAG_INTRINSICS * (f.intrinsics is not None))
+    flags = (
+        FLAG_POSE * (f.T_map_cam is not None)
+        | FLAG_POINTS * (f.points is not None)
+        | FLAG_INTRINSICS * (f.intrinsics is not None)
+    )
     header = {
-        "robot_id": f.robot_id, "stamp": f.stamp, "width": f.width, "height": f.height,
-        "vocab_id": f.vocab_id, "n_features": f.n_features, "gist_dim": len(f.gist),
+        "robot_id": f.robot_id,
+        "stamp": f.stamp,
+        "width": f.width,
+        "height": f.height,
+        "vocab_id": f.vocab_id,
+        "n_features": f.n_features,
+        "gist_dim": len(f.gist),
         "n_words": len(f.bow_ids),
         "T_map_cam": f.T_map_cam.reshape(-1).tolist() if f.T_map_cam is not None else None,
         "intrinsics": f.intrinsics.to_dict() if f.intrinsics is not None else None,
     }
     hb = json.dumps(header, allow_nan=False, separators=(",", ":")).encode()
-    parts = [_PREFIX.pack(MAGIC, VERSION, flags, len(hb)), hb,
-             f.gist.astype("<f2").tobytes(), f.keypoints.astype("<f4").tobytes(),
-             f.descriptors.tobytes()]
+    parts = [
+        _PREFIX.pack(MAGIC, VERSION, flags, len(hb)),
+        hb,
+        f.gist.astype("<f2").tobytes(),
+        f.keypoints.astype("<f4").tobytes(),
+        f.descriptors.tobytes(),
+    ]
     if f.points is not None:
         parts += [f.points.astype("<f4").tobytes(), np.packbits(f.point_valid).tobytes()]
     parts += [f.bow_ids.astype("<u4").tobytes(), f.bow_counts.astype("<u2").tobytes()]
@@ -175,8 +194,10 @@ class _Reader:
     def take(self, dtype: str, count: int, name: str) -> np.ndarray:
         nbytes = np.dtype(dtype).itemsize * count
         if self.pos + nbytes > len(self.buf) - 4:
-            raise BadFrame(f"Truncated frame: {name} needs {nbytes} bytes at offset {self.pos}, "
-                           f"only {len(self.buf) - 4 - self.pos} left")
+            raise BadFrame(
+                f"Truncated frame: {name} needs {nbytes} bytes at offset {self.pos}, "
+                f"only {len(self.buf) - 4 - self.pos} left"
+            )
         a = np.frombuffer(self.buf, dtype=dtype, count=count, offset=self.pos)
         self.pos += nbytes
         return a.astype(np.dtype(dtype).newbyteorder("="))
@@ -198,8 +219,9 @@ def _header(buf: bytes) -> tuple[int, dict, int]:
     if zlib.crc32(memoryview(buf)[:-4]) != crc:
         raise BadFrame("Frame checksum mismatch (corrupted or truncated)")
     try:
-        header = json.loads(buf[_PREFIX.size:_PREFIX.size + hlen].decode(),
-                            parse_constant=_reject_constant)
+        header = json.loads(
+            buf[_PREFIX.size : _PREFIX.size + hlen].decode(), parse_constant=_reject_constant
+        )
         if not isinstance(header, dict):
             raise ValueError("header is not an object")
     except (UnicodeDecodeError, ValueError) as exc:
@@ -241,10 +263,20 @@ def decode(buf: bytes) -> Frame:
         T = h.get("T_map_cam") if flags & FLAG_POSE else None
         intr = Intrinsics.from_dict(h["intrinsics"]) if flags & FLAG_INTRINSICS else None
         return Frame(
-            robot_id=h.get("robot_id"), stamp=h.get("stamp"), gist=gist, keypoints=kp,
-            descriptors=desc, bow_ids=ids, bow_counts=counts,
+            robot_id=h.get("robot_id"),
+            stamp=h.get("stamp"),
+            gist=gist,
+            keypoints=kp,
+            descriptors=desc,
+            bow_ids=ids,
+            bow_counts=counts,
             T_map_cam=None if T is None else np.array(T, dtype=np.float64).reshape(4, 4),
-            points=points, point_valid=valid, width=h.get("width"), height=h.get("height"),
-            vocab_id=h.get("vocab_id", ""), intrinsics=intr)
+            points=points,
+            point_valid=valid,
+            width=h.get("width"),
+            height=h.get("height"),
+            vocab_id=h.get("vocab_id", ""),
+            intrinsics=intr,
+        )
     except (BadInput, TypeError, ValueError, KeyError) as exc:
         raise BadFrame(f"Invalid frame: {exc}") from exc

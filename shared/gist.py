@@ -36,8 +36,10 @@ class GistParams:
 
     def __post_init__(self) -> None:
         if self.image_size < 8 * self.blocks or self.image_size % self.blocks:
-            raise BadInput(f"image_size must be a multiple of blocks={self.blocks} and >= "
-                           f"{8 * self.blocks}, got {self.image_size}")
+            raise BadInput(
+                f"image_size must be a multiple of blocks={self.blocks} and >= "
+                f"{8 * self.blocks}, got {self.image_size}"
+            )
 
 
 DEFAULT_PARAMS = GistParams()
@@ -114,7 +116,7 @@ def compute_gist(image: np.ndarray, params: GistParams = DEFAULT_PARAMS) -> np.n
     filtered = np.multiply(spectrum[None], gabor_bank(params))
     responses = sfft.ifft2(filtered, axes=(-2, -1), overwrite_x=True)
     s, k = params.image_size, params.blocks
-    crop = np.abs(responses[:, b:b + s, b:b + s])
+    crop = np.abs(responses[:, b : b + s, b : b + s])
     g = crop.reshape(len(crop), k, s // k, k, s // k).mean(axis=(2, 4))
     # LEAR orders each filter's windows column-major; keep that order for compatibility.
     g = g.transpose(0, 2, 1).reshape(-1).astype(np.float32)

@@ -26,8 +26,14 @@ class KeyframePolicy:
     min_interval_s: float = 0.0
 
 
-def select_keyframes(stamps: Sequence[float], poses: Sequence[np.ndarray | None],
-                     policy: KeyframePolicy = KeyframePolicy()) -> list[int]:
+DEFAULT_POLICY = KeyframePolicy()
+
+
+def select_keyframes(
+    stamps: Sequence[float],
+    poses: Sequence[np.ndarray | None],
+    policy: KeyframePolicy | None = None,
+) -> list[int]:
     """Indices of the keyframes among frames in time order.
 
     Parameters
@@ -40,6 +46,7 @@ def select_keyframes(stamps: Sequence[float], poses: Sequence[np.ndarray | None]
     -------
     list of int, always starting with 0 when N > 0.
     """
+    policy = policy or DEFAULT_POLICY
     if len(stamps) == 0:
         return []
     keep = [0]
@@ -54,7 +61,9 @@ def select_keyframes(stamps: Sequence[float], poses: Sequence[np.ndarray | None]
         if poses[i] is None or poses[last] is None:
             continue
         rel = invert(poses[last]) @ poses[i]
-        if (np.linalg.norm(rel[:3, 3]) >= policy.min_translation_m
-                or rotation_angle_deg(rel[:3, :3]) >= policy.min_rotation_deg):
+        if (
+            np.linalg.norm(rel[:3, 3]) >= policy.min_translation_m
+            or rotation_angle_deg(rel[:3, :3]) >= policy.min_rotation_deg
+        ):
             keep.append(i)
     return keep

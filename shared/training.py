@@ -45,11 +45,16 @@ def collect_images(inputs: Iterable[str | Path], stride: int = 1) -> list[Path]:
     return out
 
 
-def train_from_images(paths: list[Path], n_gist_clusters: int = 8, n_words: int = 500,
-                      gist_params: GistParams = GIST_DEFAULTS,
-                      feature_params: FeatureParams = FEATURE_DEFAULTS, seed: int = 0,
-                      progress: Callable[[Iterable], Iterable] = lambda x: x,
-                      source: str = "") -> Vocabulary:
+def train_from_images(
+    paths: list[Path],
+    n_gist_clusters: int = 8,
+    n_words: int = 500,
+    gist_params: GistParams = GIST_DEFAULTS,
+    feature_params: FeatureParams = FEATURE_DEFAULTS,
+    seed: int = 0,
+    progress: Callable[[Iterable], Iterable] = lambda x: x,
+    source: str = "",
+) -> Vocabulary:
     """Algorithm 1 on image files: GIST and MSER+SIFT of each, then both k-means."""
     gists, descs = [], []
     for p in progress(paths):
@@ -63,5 +68,12 @@ def train_from_images(paths: list[Path], n_gist_clusters: int = 8, n_words: int 
         raise BadInput(f"{len(gists)} images cannot make {n_gist_clusters} GIST clusters")
     if len(all_desc) < n_words:
         raise BadInput(f"{len(all_desc)} descriptors cannot make {n_words} words")
-    return train_vocabulary(np.stack(gists), all_desc, n_gist_clusters, n_words, gist_params,
-                            seed=seed, source=source or f"{len(paths)} images")
+    return train_vocabulary(
+        np.stack(gists),
+        all_desc,
+        n_gist_clusters,
+        n_words,
+        gist_params,
+        seed=seed,
+        source=source or f"{len(paths)} images",
+    )

@@ -32,8 +32,9 @@ def kmeans(x: np.ndarray, k: int, seed: int = 0, niter: int = 25) -> np.ndarray:
     x = np.ascontiguousarray(x, dtype=np.float32)
     if x.ndim != 2 or len(x) < k:
         raise BadInput(f"k-means needs at least k={k} rows of shape (N, D), got {x.shape}")
-    km = faiss.Kmeans(x.shape[1], k, niter=niter, seed=seed, verbose=False,
-                      max_points_per_centroid=512)
+    km = faiss.Kmeans(
+        x.shape[1], k, niter=niter, seed=seed, verbose=False, max_points_per_centroid=512
+    )
     km.train(x)
     return km.centroids.copy()
 
@@ -60,11 +61,14 @@ class Vocabulary:
         self.gist_centroids = np.ascontiguousarray(self.gist_centroids, dtype=np.float32)
         self.word_centroids = np.ascontiguousarray(self.word_centroids, dtype=np.float32)
         if self.gist_centroids.ndim != 2 or self.gist_centroids.shape[1] != self.gist_params.dim:
-            raise BadVocabulary(f"Expected GIST centroids of shape (n, {self.gist_params.dim}), "
-                                f"got {self.gist_centroids.shape}")
+            raise BadVocabulary(
+                f"Expected GIST centroids of shape (n, {self.gist_params.dim}), "
+                f"got {self.gist_centroids.shape}"
+            )
         if self.word_centroids.ndim != 2 or self.word_centroids.shape[1] != 128:
-            raise BadVocabulary(f"Expected word centroids of shape (k, 128), "
-                                f"got {self.word_centroids.shape}")
+            raise BadVocabulary(
+                f"Expected word centroids of shape (k, 128), got {self.word_centroids.shape}"
+            )
         for name in ("gist_centroids", "word_centroids"):
             if not np.all(np.isfinite(getattr(self, name))):
                 raise BadVocabulary(f"{name} has non-finite values")
@@ -87,8 +91,7 @@ class Vocabulary:
         if self._word_index is None:
             self._word_index = faiss.IndexFlatL2(128)
             self._word_index.add(self.word_centroids)
-        _, idx = self._word_index.search(
-            np.ascontiguousarray(descriptors, dtype=np.float32), 1)
+        _, idx = self._word_index.search(np.ascontiguousarray(descriptors, dtype=np.float32), 1)
         return idx[:, 0].astype(np.int64)
 
     def bow(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -100,11 +103,18 @@ class Vocabulary:
         """Write the versioned, pickle-free `.npz` file."""
         p = self.gist_params
         np.savez_compressed(
-            path, format=np.array(FORMAT), format_version=np.array(FORMAT_VERSION),
-            gist_centroids=self.gist_centroids, word_centroids=self.word_centroids,
-            gist_image_size=np.array(p.image_size), gist_orientations=np.array(p.orientations),
-            gist_blocks=np.array(p.blocks), gist_prefilter_fc=np.array(p.prefilter_fc),
-            gist_boundary=np.array(p.boundary), source=np.array(self.source))
+            path,
+            format=np.array(FORMAT),
+            format_version=np.array(FORMAT_VERSION),
+            gist_centroids=self.gist_centroids,
+            word_centroids=self.word_centroids,
+            gist_image_size=np.array(p.image_size),
+            gist_orientations=np.array(p.orientations),
+            gist_blocks=np.array(p.blocks),
+            gist_prefilter_fc=np.array(p.prefilter_fc),
+            gist_boundary=np.array(p.boundary),
+            source=np.array(self.source),
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> Vocabulary:
@@ -114,13 +124,17 @@ class Vocabulary:
                 if str(z["format"]) != FORMAT:
                     raise BadVocabulary(f"{path}: not a fleetmap vocabulary")
                 if int(z["format_version"]) != FORMAT_VERSION:
-                    raise BadVocabulary(f"{path}: format version {int(z['format_version'])}, "
-                                        f"this build reads {FORMAT_VERSION}")
+                    raise BadVocabulary(
+                        f"{path}: format version {int(z['format_version'])}, "
+                        f"this build reads {FORMAT_VERSION}"
+                    )
                 params = GistParams(
                     image_size=int(z["gist_image_size"]),
                     orientations=tuple(int(o) for o in z["gist_orientations"]),
-                    blocks=int(z["gist_blocks"]), prefilter_fc=float(z["gist_prefilter_fc"]),
-                    boundary=int(z["gist_boundary"]))
+                    blocks=int(z["gist_blocks"]),
+                    prefilter_fc=float(z["gist_prefilter_fc"]),
+                    boundary=int(z["gist_boundary"]),
+                )
                 return cls(z["gist_centroids"], z["word_centroids"], params, str(z["source"]))
         except (OSError, KeyError, ValueError, BadInput) as exc:
             raise BadVocabulary(f"Cannot read vocabulary {path}: {exc}") from exc
@@ -136,14 +150,29 @@ def load_vocabulary(path: str | Path | None = None) -> Vocabulary:
     return Vocabulary.load(path or default_vocabulary_path())
 
 
-def train_vocabulary(gists: np.ndarray, descriptors: np.ndarray, n_gist_clusters: int,
-                     n_words: int, gist_params: GistParams, seed: int = 0,
-                     source: str = "") -> Vocabulary:
+def train_vocabulary(
+    gists: np.ndarray,
+    descriptors: np.ndarray,
+    n_gist_clusters: int,
+    n_words: int,
+    gist_params: GistParams,
+    seed: int = 0,
+    source: str = "",
+) -> Vocabulary:
     """Algorithm 1: k-means codebooks over GIST (N, D) and SIFT descriptors (M, 128)."""
-    log.info("k-means: %d GIST -> %d clusters, %d SIFT -> %d words",
-             len(gists), n_gist_clusters, len(descriptors), n_words)
-    return Vocabulary(kmeans(gists, n_gist_clusters, seed), kmeans(descriptors, n_words, seed),
-                      gist_params, source)
+    log.info(
+        "k-means: %d GIST -> %d clusters, %d SIFT -> %d words",
+        len(gists),
+        n_gist_clusters,
+        len(descriptors),
+        n_words,
+    )
+    return Vocabulary(
+        kmeans(gists, n_gist_clusters, seed),
+        kmeans(descriptors, n_words, seed),
+        gist_params,
+        source,
+    )
 
 
 def bow_dense(ids: np.ndarray, counts: np.ndarray, n_words: int) -> np.ndarray:
@@ -154,8 +183,9 @@ def bow_dense(ids: np.ndarray, counts: np.ndarray, n_words: int) -> np.ndarray:
     return h / total if total > 0 else h
 
 
-def bhattacharyya(ids_a: np.ndarray, counts_a: np.ndarray, ids_b: np.ndarray,
-                  counts_b: np.ndarray) -> float:
+def bhattacharyya(
+    ids_a: np.ndarray, counts_a: np.ndarray, ids_b: np.ndarray, counts_b: np.ndarray
+) -> float:
     """Bhattacharyya distance (thesis eq. 2.9) d = sqrt(1 - rho) between two sparse BoWs.
 
     rho = sum_i sqrt(l(i) l'(i)) over the L1-normalised histograms; 0 for identical

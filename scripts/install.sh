@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Install fleetmap and its dependencies into ./.venv (Debian, Python 3.11).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+APT_PACKAGES="libusb-1.0-0 libgl1 libgomp1"
+missing=$(for p in $APT_PACKAGES; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done)
+if [ -n "$missing" ]; then
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $missing
+fi
+PY=${PYTHON:-python3.11}
+command -v "$PY" >/dev/null || PY=python3
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>/dev/null || true
+# CPU torch first: an unpinned torch would pull a multi-GB CUDA build.
+quiet() { grep -v "^WARNING: Location" || true; }
+.venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | quiet
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]" 2>&1 | quiet
+.venv/bin/python -c "import fastapi, cv2, open3d, torch, faiss; import shared, services" \
+  || { echo "install.sh: dependencies failed to import" >&2; exit 1; }
+echo "fleetmap installed in .venv"

@@ -1,0 +1,41 @@
+from services.cli import main
+from shared.frame import decode
+
+
+def test_extract_writes_one_decodable_frame_per_keyframe(tum_robot, tmp_path, capsys):
+    out = tmp_path / "frames"
+    assert main(["extract", f"scout={tum_robot}", "-o", str(out), "--kf-interval", "0.01"]) == 0
+    files = sorted(out.glob("*.fmf"))
+    assert len(files) == 2
+    f = decode(files[0].read_bytes())
+    assert f.robot_id == "scout" and f.intrinsics.fx == 517.3
+    assert f.point_valid.sum() > 50
+    assert "2 keyframes" in capsys.readouterr().out
+
+
+def test_extract_reports_missing_folder(tmp_path, capsys):
+    assert main(["extract", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o")]) == 2
+    assert "Robot folder not found" in capsys.readouterr().err
+
+
+def test_extract_applies_intrinsics_overrides(tum_robot, tmp_path):
+    out = tmp_path / "frames"
+    assert (
+        main(
+            [
+                "extract",
+                str(tum_robot),
+                "-o",
+                str(out),
+                "--fx",
+                "525",
+                "--fy",
+                "525",
+                "--depth-scale",
+                "5000",
+            ]
+        )
+        == 0
+    )
+    f = decode(next(out.glob("*.fmf")).read_bytes())
+    assert f.intrinsics.fx == 525.0 and f.intrinsics.cx == 318.6
