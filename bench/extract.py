@@ -43,8 +43,7 @@ def main() -> None:
             rgb, depth = load_rgb(fr.rgb_path), load_depth(fr.depth_path)
             t_gist, _ = _ms(compute_gist, rgb, vocab.gist_params)
             t_local, lf = _ms(detect_and_describe, rgb)
-            t_all, frame = _ms(extractor, robot, fr.stamp, rgb, depth, rec.intrinsics,
-                               fr.T_map_cam)
+            t_all, frame = _ms(extractor, robot, fr.stamp, rgb, depth, rec.intrinsics, fr.T_map_cam)
             rows.append((t_gist, t_local, t_all, len(encode(frame)), frame.n_features))
     a = np.array(rows)
     n_feat = float(np.median(a[:, 4]))
@@ -54,10 +53,14 @@ def main() -> None:
     print("|---|---|---|")
     print(f"| GIST | {np.median(a[:, 0]):.2f} ms | 90 ms (C, Table 2.1) |")
     print(f"| MSER + SIFT | {np.median(a[:, 1]):.1f} ms | 680 ms (SIFT, OpenCV, Table 2.1) |")
-    print(f"| whole frame structure | {np.median(a[:, 2]):.1f} ms (p90 "
-          f"{np.percentile(a[:, 2], 90):.1f}) | 770 ms |")
-    print(f"| encoded frame | {np.median(a[:, 3]) / 1024:.1f} KiB | "
-          f"{thesis_bytes / 1024:.1f} KiB at {n_feat:.0f} features (1,536 B + 512 B/feature) |")
+    print(
+        f"| whole frame structure | {np.median(a[:, 2]):.1f} ms (p90 "
+        f"{np.percentile(a[:, 2], 90):.1f}) | 770 ms |"
+    )
+    print(
+        f"| encoded frame | {np.median(a[:, 3]) / 1024:.1f} KiB | "
+        f"{thesis_bytes / 1024:.1f} KiB at {n_feat:.0f} features (1,536 B + 512 B/feature) |"
+    )
     print(f"| ratio to thesis bytes | {np.median(a[:, 3]) / thesis_bytes:.3f} | 1 |")
 
 

@@ -114,6 +114,87 @@ def cmd_vocab_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Run one service in the foreground until SIGTERM/SIGINT."""
+    import uvicorn
+
+    if args.service == "place-db":
+        from services.place_db.config import Settings
+        from services.place_db.main import create_app
+
+        overrides = {"data_dir": Path(args.data_dir)} if args.data_dir else {}
+        app = create_app(Settings(**overrides))
+    else:
+        from services.aligner.config import Settings as AlignerSettings
+        from services.aligner.main import create_app as create_aligner
+
+        app = create_aligner(AlignerSettings())
+    port = args.port or (8100 if args.service == "place-db" else 8200)
+    uvicorn.run(app, host=args.host, port=port, log_level="info" if args.verbose else "warning",
+                timeout_graceful_shutdown=30)
+    return 0
+
+
+def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tuple[str, int]:
+    """Extract a robot folder's keyframes and POST them; returns (robot id, keyframes)."""
+    from shared.dataset import parse_robot_arg, read_recording
+    from shared.extract import FrameExtractor, extract_recording, keyframe_indices
+
+    name, robot_dir = parse_robot_arg(robot_arg)
+    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir))
+    n = len(keyframe_indices(rec, _policy(args)))
+    frames = extract_recording(rec, FrameExtractor(vocab), _policy(args))
+    for frame in tqdm(frames, total=n, desc=f"ingest {rec.robot_id}", unit="kf",
+                      disable=getattr(args, "quiet", False)):
+        client.add_keyframe(frame)
+    return rec.robot_id, n
+
+
+def _checked_vocabulary(client, path):
+    """The vocabulary to extract with: the service's must be the same."""
+    from shared.errors import BadVocabulary
+    from shared.vocabulary import load_vocabulary
+
+    vocab = load_vocabulary(path)
+    served = client.vocabulary()["vocab_id"]
+    if served != vocab.vocab_id:
+        raise BadVocabulary(f"The place database uses vocabulary {served}, this CLI loaded "
+                            f"{vocab.vocab_id}: pass the same file with --vocab")
+    return vocab
+
+
+def cmd_ingest(args: argparse.Namespace) -> int:
+    """Select keyframes of robot folders, compute their frame structures and POST them."""
+    from shared.client import PlaceDBClient
+
+    with PlaceDBClient(args.place_db) as client:
+        vocab = _checked_vocabulary(client, args.vocab)
+        for robot in args.robots:
+            rid, n = ingest_robot(robot, client, args, vocab)
+            print(f"{rid}: {n} keyframes ingested")
+    return 0
+
+
+def cmd_overlaps(args: argparse.Namespace) -> int:
+    """Verified keyframe pairs between two robots."""
+    import json
+
+    from shared.client import PlaceDBClient
+
+    with PlaceDBClient(args.place_db) as client:
+        pairs = client.overlaps(args.robot_a, args.robot_b, wait=args.wait)
+    items = [{"robot_a": p["robot_a"], "stamp_a": p["stamp_a"], "robot_b": p["robot_b"],
+              "stamp_b": p["stamp_b"], "inliers": p["inliers"],
+              "keyframe_a": p["keyframe_a"], "keyframe_b": p["keyframe_b"]} for p in pairs]
+    if args.json:
+        print(json.dumps({"overlaps": items}, indent=2))
+    else:
+        print(f"{len(items)} verified pairs between {args.robot_a} and {args.robot_b}")
+        for it in items:
+            print(f"  {it['stamp_a']:.6f} <-> {it['stamp_b']:.6f}  {it['inliers']} inliers")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
@@ -139,6 +220,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--source", default="", help="text recorded as the training source")
     p.set_defaults(func=cmd_vocab_train)
+
+    p = sub.add_parser("serve", help="run a service in the foreground")
+    p.add_argument("service", choices=["place-db", "aligner"])
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=None, help="default 8100 / 8200")
+    p.add_argument("--data-dir", help="place database storage (default: per-user data folder)")
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("ingest", help="extract robot folders and POST them to the place db")
+    p.add_argument("robots", nargs="+", metavar="[NAME=]ROBOT_DIR")
+    p.add_argument("--place-db", required=True, metavar="URL")
+    p.add_argument("--vocab", help="vocabulary file (must be the service's)")
+    _add_camera_args(p)
+    _add_keyframe_args(p)
+    p.set_defaults(func=cmd_ingest)
+
+    p = sub.add_parser("overlaps", help="verified keyframe pairs between two robots")
+    p.add_argument("robot_a")
+    p.add_argument("robot_b")
+    p.add_argument("--place-db", required=True, metavar="URL")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--wait", type=float, default=120.0,
+                   help="seconds to wait for queued overlap detection (default 120)")
+    p.set_defaults(func=cmd_overlaps)
     return parser
 
 

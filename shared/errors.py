@@ -44,3 +44,11 @@ class NotEnoughCorrespondences(FleetmapError):
 
 class PayloadTooLarge(BadInput):
     """A body or field larger than the configured limit."""
+
+
+class Conflict(FleetmapError):
+    """A write that contradicts what is stored (e.g. another keyframe at the same stamp)."""
+
+
+class Unavailable(FleetmapError):
+    """A service or resource that cannot be reached or is not ready."""

@@ -1,0 +1,1 @@
+"""The place database service: keyframe ingest, storage and the overlap-retrieval cascade."""

@@ -1,0 +1,183 @@
+"""Place database routes: each parses input, calls one core function, returns a schema."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from services.common import read_body
+from services.place_db import schemas as s
+from shared.errors import BadInput
+from shared.frame import decode
+from shared.placedb import PlaceDB
+from shared.retrieval import Candidate
+
+router = APIRouter()
+FRAME_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+        "description": "An encoded frame structure (shared/frame.py, version 1).",
+    }
+}
+
+
+def _db(request: Request) -> PlaceDB:
+    return request.app.state.db
+
+
+@router.get("/healthz", response_model=s.Health)
+def healthz(request: Request) -> s.Health:
+    """Liveness and the state of the database and the index."""
+    st = _db(request).stats()
+    return s.Health(
+        status="ok",
+        keyframes=st["keyframes"],
+        robots=st["robots"],
+        pending=st["pending"],
+        database=st["db_path"],
+    )
+
+
+@router.post(
+    "/robots/{robot_id}/keyframes",
+    status_code=201,
+    response_model=s.KeyframeCreated,
+    openapi_extra=FRAME_BODY,
+    responses={200: {"model": s.KeyframeCreated}},
+)
+async def ingest(robot_id: str, request: Request, response: Response) -> s.KeyframeCreated:
+    """Store one keyframe's frame structure durably; 201 once it is on disk."""
+    body = await read_body(request, request.app.state.settings.max_body_bytes)
+    kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body)
+    if not created:
+        response.status_code = 200
+    info = _db(request).keyframe_info(kf_id)
+    return s.KeyframeCreated(id=kf_id, robot_id=robot_id, stamp=info["stamp"], created=created)
+
+
+@router.get("/robots", response_model=s.Robots)
+def robots(request: Request) -> s.Robots:
+    """The robots known, with keyframe counts."""
+    return s.Robots(robots=[s.RobotInfo(**r) for r in _db(request).robots()])
+
+
+@router.get("/robots/{robot_id}/keyframes", response_model=s.Keyframes)
+def keyframes(
+    robot_id: str,
+    request: Request,
+    offset: int = Query(0, ge=0),
+    limit: int = Query(1000, ge=1, le=10000),
+) -> s.Keyframes:
+    """A robot's keyframes in time order, paged."""
+    rows = _db(request).keyframes(robot_id, offset, limit)
+    return s.Keyframes(robot_id=robot_id, keyframes=[s.KeyframeInfo(**r) for r in rows])
+
+
+@router.delete("/robots/{robot_id}", response_model=s.Deleted)
+def delete_robot(robot_id: str, request: Request) -> s.Deleted:
+    """Delete a robot with its keyframes and overlaps."""
+    return s.Deleted(robot_id=robot_id, deleted_keyframes=_db(request).delete_robot(robot_id))
+
+
+@router.get(
+    "/keyframes/{kf_id}/frame",
+    response_class=Response,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+def keyframe_frame(kf_id: int, request: Request) -> Response:
+    """The stored encoded frame of one keyframe."""
+    return Response(_db(request).frame_bytes(kf_id), media_type="application/octet-stream")
+
+
+def _winner(db: PlaceDB, c: Candidate) -> s.Winner:
+    return s.Winner(
+        keyframe_id=c.kf_id,
+        robot_id=db.robot_name(c.robot),
+        stamp=c.stamp,
+        inliers=c.verification.inliers,
+        matches=c.verification.matches,
+        gist_distance=c.gist_distance,
+        bow_distance=c.bow_distance,
+    )
+
+
+@router.post("/query", response_model=s.QueryAnswer, openapi_extra=FRAME_BODY)
+async def query(
+    request: Request,
+    robot: str | None = None,
+    exclude_robot: str | None = None,
+    max_stamp: float | None = None,
+) -> s.QueryAnswer:
+    """The retrieval cascade's answer for one frame: winner, verified list, stage counts."""
+    body = await read_body(request, request.app.state.settings.max_body_bytes)
+    db = _db(request)
+    frame = decode(body)
+    flt = db.make_filter(robot, exclude_robot, max_stamp)
+    r = await run_in_threadpool(db.query, frame, flt)
+    return s.QueryAnswer(
+        winner=_winner(db, r.winner) if r.winner else None,
+        verified=[_winner(db, c) for c in r.verified],
+        stages=[s.StageInfo(name=x.name, kept=x.kept, ms=x.ms) for x in r.stages],
+        database_size=r.database_size,
+        total_ms=r.total_ms,
+    )
+
+
+@router.get("/overlaps", response_model=s.Overlaps, response_model_exclude_none=True)
+def overlaps(
+    request: Request,
+    robot_a: str | None = None,
+    robot_b: str | None = None,
+    wait: float = Query(0.0, ge=0.0, le=600.0),
+) -> s.Overlaps:
+    """Verified keyframe pairs between two robots, or without robots the overlap graph.
+    `wait` seconds at most for keyframes still queued for overlap detection."""
+    db = _db(request)
+    if wait:
+        db.wait_idle(wait)
+    if robot_a is None and robot_b is None:
+        return s.Overlaps(
+            graph=[s.OverlapEdge(**e) for e in db.overlap_graph()], pending=db.pending()
+        )
+    if robot_a is None or robot_b is None:
+        raise BadInput("Give both robot_a and robot_b, or neither for the overlap graph")
+    pairs = [
+        s.OverlapPair(
+            robot_a=o.robot_a,
+            keyframe_a=o.kf_a,
+            stamp_a=o.stamp_a,
+            robot_b=o.robot_b,
+            keyframe_b=o.kf_b,
+            stamp_b=o.stamp_b,
+            inliers=o.inliers,
+            matches=o.matches,
+        )
+        for o in db.overlaps(robot_a, robot_b)
+    ]
+    return s.Overlaps(overlaps=pairs, pending=db.pending())
+
+
+@router.get("/vocabulary")
+def vocabulary(request: Request) -> dict:
+    """The vocabulary frames must be built with."""
+    v = _db(request).vocabulary
+    return {
+        "vocab_id": v.vocab_id,
+        "words": v.n_words,
+        "gist_dim": v.gist_params.dim,
+        "gist_clusters": len(v.gist_centroids),
+        "source": v.source,
+    }
+
+
+@router.get("/stats")
+def stats(request: Request) -> dict:
+    """Database and index statistics (cluster balance, pending work, sizes)."""
+    return _db(request).stats()
+
+
+@router.post("/admin/retrain", response_model=s.Retrained)
+def retrain(request: Request, clusters: int | None = Query(None, ge=2, le=65536)) -> s.Retrained:
+    """Retrain the coarse GIST codebook from the stored keyframes; no downtime."""
+    return s.Retrained(**_db(request).retrain(clusters))

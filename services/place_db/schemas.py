@@ -1,0 +1,105 @@
+"""Response bodies of the place database. Request bodies are encoded frames
+(`application/octet-stream`, the version-1 format of `shared/frame.py`)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+
+class Health(BaseModel):
+    status: str
+    keyframes: int
+    robots: int
+    pending: int
+    database: str
+
+
+class KeyframeCreated(BaseModel):
+    id: int
+    robot_id: str
+    stamp: float
+    created: bool
+
+
+class RobotInfo(BaseModel):
+    robot_id: str
+    keyframes: int
+    first_stamp: float | None = None
+    last_stamp: float | None = None
+
+
+class Robots(BaseModel):
+    robots: list[RobotInfo]
+
+
+class KeyframeInfo(BaseModel):
+    id: int
+    stamp: float
+    processed: bool
+
+
+class Keyframes(BaseModel):
+    robot_id: str
+    keyframes: list[KeyframeInfo]
+
+
+class StageInfo(BaseModel):
+    name: str
+    kept: int
+    ms: float
+
+
+class Winner(BaseModel):
+    keyframe_id: int
+    robot_id: str
+    stamp: float
+    inliers: int
+    matches: int
+    gist_distance: float
+    bow_distance: float
+
+
+class QueryAnswer(BaseModel):
+    winner: Winner | None
+    verified: list[Winner]
+    stages: list[StageInfo]
+    database_size: int
+    total_ms: float
+
+
+class OverlapPair(BaseModel):
+    robot_a: str
+    keyframe_a: int
+    stamp_a: float
+    robot_b: str
+    keyframe_b: int
+    stamp_b: float
+    inliers: int
+    matches: int
+
+
+class OverlapEdge(BaseModel):
+    robot_a: str
+    robot_b: str
+    pairs: int
+    best_inliers: int
+    total_inliers: int
+
+
+class Overlaps(BaseModel):
+    overlaps: list[OverlapPair] | None = None
+    graph: list[OverlapEdge] | None = None
+    pending: int
+
+
+class Deleted(BaseModel):
+    robot_id: str
+    deleted_keyframes: int
+
+
+class Retrained(BaseModel):
+    clusters: int
+    keyframes: int
+    cluster_max: int
+    cluster_mean: float
+    seconds: float

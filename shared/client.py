@@ -1,0 +1,111 @@
+"""Python clients of the two services (httpx), used by the CLI and the tests."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+
+from shared.errors import BadInput, Conflict, FleetmapError, Unavailable, UnknownRobot
+from shared.frame import Frame, encode
+
+OCTET = {"content-type": "application/octet-stream"}
+
+
+class ServiceError(FleetmapError):
+    """A service answered with an error status."""
+
+    def __init__(self, status: int, detail: str):
+        super().__init__(f"HTTP {status}: {detail}")
+        self.status = status
+
+
+def _raise_for(resp: httpx.Response) -> httpx.Response:
+    if resp.status_code < 400:
+        return resp
+    try:
+        detail = resp.json().get("detail", resp.text)
+    except ValueError:
+        detail = resp.text
+    detail = detail if isinstance(detail, str) else str(detail)
+    if resp.status_code == 404 and "robot" in detail.lower():
+        raise UnknownRobot(detail)
+    if resp.status_code == 409:
+        raise Conflict(detail)
+    if resp.status_code in (400, 413, 422):
+        raise BadInput(f"{resp.request.url.path}: {detail}")
+    raise ServiceError(resp.status_code, detail)
+
+
+class _Client:
+    def __init__(self, url: str, timeout: float = 60.0, token: str | None = None):
+        headers = {"authorization": f"Bearer {token}"} if token else {}
+        self.url = url.rstrip("/")
+        self.http = httpx.Client(base_url=self.url, timeout=timeout, headers=headers)
+
+    def _call(self, method: str, path: str, **kw) -> httpx.Response:
+        try:
+            return _raise_for(self.http.request(method, path, **kw))
+        except httpx.TransportError as exc:
+            raise Unavailable(f"Cannot reach {self.url}{path}: {exc}") from exc
+
+    def health(self) -> dict:
+        return self._call("GET", "/healthz").json()
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        end = time.monotonic() + timeout
+        while True:
+            try:
+                self.health()
+                return
+            except (Unavailable, ServiceError):
+                if time.monotonic() > end:
+                    raise Unavailable(f"{self.url} not ready after {timeout:.0f} s") from None
+                time.sleep(0.1)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class PlaceDBClient(_Client):
+    """Client of the place database service."""
+
+    def add_keyframe(self, frame: Frame | bytes, robot_id: str | None = None) -> dict:
+        data = frame if isinstance(frame, bytes) else encode(frame)
+        rid = robot_id or frame.robot_id
+        return self._call("POST", f"/robots/{rid}/keyframes", content=data, headers=OCTET).json()
+
+    def robots(self) -> list[dict]:
+        return self._call("GET", "/robots").json()["robots"]
+
+    def query(self, frame: Frame, **params) -> dict:
+        params = {k: v for k, v in params.items() if v is not None}
+        return self._call(
+            "POST", "/query", content=encode(frame), headers=OCTET, params=params
+        ).json()
+
+    def overlaps(self, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
+        return self._call(
+            "GET", "/overlaps", params={"robot_a": robot_a, "robot_b": robot_b, "wait": wait}
+        ).json()["overlaps"]
+
+    def overlap_graph(self, wait: float = 0.0) -> list[dict]:
+        return self._call("GET", "/overlaps", params={"wait": wait}).json()["graph"]
+
+    def frame(self, kf_id: int) -> bytes:
+        return self._call("GET", f"/keyframes/{kf_id}/frame").content
+
+    def vocabulary(self) -> dict:
+        return self._call("GET", "/vocabulary").json()
+
+    def delete_robot(self, robot_id: str) -> dict:
+        return self._call("DELETE", f"/robots/{robot_id}").json()
+
+    def stats(self) -> dict:
+        return self._call("GET", "/stats").json()

@@ -1,0 +1,615 @@
+"""The place database: durable keyframe storage (SQLite, WAL) and the live place index.
+
+A keyframe is acknowledged only after its transaction is committed with
+`synchronous=FULL`, so an acknowledged keyframe survives a crash of the process or the
+machine. On start the in-memory index is rebuilt from the small per-keyframe columns
+(GIST and BoW); full frames (local features) stay on disk until a candidate needs them.
+
+Overlaps between robots are found incrementally: each new keyframe is queued, and a
+background worker runs the cascade against the other robots' keyframes and records the
+verified winner per robot. Keyframes not yet processed when the process stopped are
+re-queued on start, so a crash loses no overlap either.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.errors import BadInput, Conflict, UnknownKeyframe, UnknownRobot
+from shared.frame import Frame, check_robot_id, decode
+from shared.retrieval import (
+    DEFAULT_CASCADE,
+    CascadeParams,
+    CascadeResult,
+    Filter,
+    PlaceIndex,
+    run_cascade,
+)
+from shared.vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS robots (
+    id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE, created REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS keyframes (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    robot INTEGER NOT NULL REFERENCES robots(id) ON DELETE CASCADE,
+    stamp REAL NOT NULL, created REAL NOT NULL, processed INTEGER NOT NULL DEFAULT 0,
+    gist BLOB NOT NULL, bow_ids BLOB NOT NULL, bow_counts BLOB NOT NULL, data BLOB NOT NULL,
+    UNIQUE (robot, stamp));
+CREATE INDEX IF NOT EXISTS keyframes_unprocessed ON keyframes(processed) WHERE processed = 0;
+CREATE TABLE IF NOT EXISTS overlaps (
+    kf_a INTEGER NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+    kf_b INTEGER NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+    robot_a INTEGER NOT NULL, robot_b INTEGER NOT NULL,
+    inliers INTEGER NOT NULL, matches INTEGER NOT NULL, created REAL NOT NULL,
+    PRIMARY KEY (kf_a, kf_b));
+CREATE INDEX IF NOT EXISTS overlaps_robots ON overlaps(robot_a, robot_b);
+CREATE TABLE IF NOT EXISTS codebooks (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, created REAL NOT NULL, n_clusters INTEGER NOT NULL,
+    dim INTEGER NOT NULL, centroids BLOB NOT NULL);
+"""
+
+
+@dataclass
+class Overlap:
+    """A verified keyframe pair between two robots, oriented robot_a -> robot_b."""
+
+    robot_a: str
+    kf_a: int
+    stamp_a: float
+    robot_b: str
+    kf_b: int
+    stamp_b: float
+    inliers: int
+    matches: int
+
+
+@dataclass(frozen=True)
+class RetrainPolicy:
+    """When the coarse codebook no longer fits the stored GISTs (thesis Fig. 2.12)."""
+
+    enabled: bool = True
+    min_keyframes: int = 2000
+    max_mean_list: int = 256  # retrain when keyframes per cluster exceed this
+    max_imbalance: float = 10.0  # or when the largest list exceeds this x the mean
+
+    def target_clusters(self, n: int) -> int:
+        return int(np.clip(2 * np.sqrt(n), 8, 8192))
+
+
+class PlaceDB:
+    """Keyframes of a fleet, their place index and the overlaps found between robots."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        vocabulary: Vocabulary,
+        params: CascadeParams = DEFAULT_CASCADE,
+        retrain: RetrainPolicy | None = None,
+        background: bool = True,
+    ):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.vocabulary = vocabulary
+        self.params = params
+        self.retrain_policy = retrain or RetrainPolicy()
+        self._write_lock = threading.Lock()
+        self._local = threading.local()
+        self._db = self._connect()
+        self._init_schema()
+        self._robot_ids: dict[str, int] = {}
+        self._robot_names: dict[int, str] = {}
+        self.index = PlaceIndex(self._initial_codebook(), vocabulary.n_words)
+        self._queue: queue.Queue[int | None] = queue.Queue()
+        self._retraining = threading.Lock()
+        self._closed = False
+        self._load()
+        self._worker = None
+        if background:
+            self._worker = threading.Thread(target=self._work, name="overlap-worker", daemon=True)
+            self._worker.start()
+
+    # --- storage --------------------------------------------------------------------
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=30.0)
+        db.execute("PRAGMA journal_mode=WAL")
+        db.execute("PRAGMA synchronous=FULL")
+        db.execute("PRAGMA foreign_keys=ON")
+        return db
+
+    def _reader(self) -> sqlite3.Connection:
+        """One read connection per thread: WAL readers never block the writer."""
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = self._local.conn = self._connect()
+        return conn
+
+    def _init_schema(self) -> None:
+        with self._write_lock:
+            self._db.executescript(SCHEMA)
+            row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+            if row is None:
+                self._db.execute(
+                    "INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),)
+                )
+                self._db.execute(
+                    "INSERT INTO meta VALUES ('vocab_id', ?)", (self.vocabulary.vocab_id,)
+                )
+            elif int(row[0]) != SCHEMA_VERSION:
+                raise BadInput(
+                    f"{self.path}: schema version {row[0]}, this build uses {SCHEMA_VERSION}"
+                )
+            vid = self._db.execute("SELECT value FROM meta WHERE key='vocab_id'").fetchone()[0]
+            if vid != self.vocabulary.vocab_id:
+                raise BadInput(
+                    f"{self.path} was built with vocabulary {vid}, but "
+                    f"{self.vocabulary.vocab_id} is loaded"
+                )
+
+    def _initial_codebook(self) -> np.ndarray:
+        row = self._db.execute(
+            "SELECT n_clusters, dim, centroids FROM codebooks ORDER BY id DESC LIMIT 1"
+        ).fetchone()
+        if row is None:
+            return self.vocabulary.gist_centroids
+        return np.frombuffer(row[2], dtype=np.float32).reshape(row[0], row[1])
+
+    def _load(self) -> None:
+        t = time.perf_counter()
+        for rid, name in self._db.execute("SELECT id, name FROM robots"):
+            self._robot_ids[name], self._robot_names[rid] = rid, name
+        batch: list[tuple] = []
+        cur = self._db.execute(
+            "SELECT id, robot, stamp, gist, bow_ids, bow_counts, processed "
+            "FROM keyframes ORDER BY id"
+        )
+        pending = []
+        for row in cur:
+            batch.append(row)
+            if not row[6]:
+                pending.append(row[0])
+            if len(batch) >= 10000:
+                self._index_rows(batch)
+                batch = []
+        self._index_rows(batch)
+        for kf in pending:
+            self._queue.put(kf)
+        log.info(
+            "place index rebuilt: %d keyframes of %d robots in %.1f s (%d to process)",
+            len(self.index),
+            len(self._robot_ids),
+            time.perf_counter() - t,
+            len(pending),
+        )
+
+    def _index_rows(self, rows: list[tuple]) -> None:
+        if not rows:
+            return
+        self.index.add_many(
+            [r[0] for r in rows],
+            [r[1] for r in rows],
+            [r[2] for r in rows],
+            np.stack([np.frombuffer(r[3], dtype="<f2") for r in rows]),
+            [np.frombuffer(r[4], dtype="<u4") for r in rows],
+            [np.frombuffer(r[5], dtype="<u2") for r in rows],
+        )
+
+    def _robot(self, name: str, create: bool) -> int:
+        rid = self._robot_ids.get(name)
+        if rid is None:
+            if not create:
+                raise UnknownRobot(f"Unknown robot {name!r}")
+            cur = self._db.execute(
+                "INSERT INTO robots (name, created) VALUES (?, ?)", (name, time.time())
+            )
+            rid = cur.lastrowid
+            self._robot_ids[name], self._robot_names[rid] = rid, name
+        return rid
+
+    def add_keyframe(self, robot_id: str, data: bytes) -> tuple[int, bool]:
+        """Store one encoded frame for robot_id; returns (keyframe id, newly created).
+
+        Re-sending the identical frame is idempotent; a different frame at the same
+        stamp is a Conflict. Returns only once the keyframe is durably committed.
+        """
+        frame = decode(data)
+        check_robot_id(robot_id)
+        if frame.robot_id != robot_id:
+            raise BadInput(f"Frame is of robot {frame.robot_id!r}, posted for {robot_id!r}")
+        if frame.vocab_id != self.vocabulary.vocab_id:
+            raise BadInput(
+                f"Frame BoW is over vocabulary {frame.vocab_id!r}, this database "
+                f"uses {self.vocabulary.vocab_id!r}"
+            )
+        if len(frame.gist) != self.index.dim:
+            raise BadInput(f"Expected a GIST of {self.index.dim} values, got {len(frame.gist)}")
+        if len(frame.bow_ids) and int(frame.bow_ids.max()) >= self.vocabulary.n_words:
+            raise BadInput(
+                f"BoW word id {int(frame.bow_ids.max())} outside the "
+                f"{self.vocabulary.n_words}-word vocabulary"
+            )
+        with self._write_lock:
+            if self._closed:
+                raise BadInput("place database is shutting down")
+            rid = self._robot_ids.get(robot_id)
+            if rid is not None:
+                row = self._db.execute(
+                    "SELECT id, data FROM keyframes WHERE robot=? AND stamp=?", (rid, frame.stamp)
+                ).fetchone()
+                if row is not None:
+                    if bytes(row[1]) == bytes(data):
+                        return int(row[0]), False
+                    raise Conflict(
+                        f"Robot {robot_id!r} already has a different keyframe at "
+                        f"stamp {frame.stamp}"
+                    )
+            new_robot = rid is None
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                rid = self._robot(robot_id, create=True)
+                cur = self._db.execute(
+                    "INSERT INTO keyframes (robot, stamp, created, gist, bow_ids, bow_counts, "
+                    "data) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        rid,
+                        frame.stamp,
+                        time.time(),
+                        frame.gist.astype("<f2").tobytes(),
+                        frame.bow_ids.astype("<u4").tobytes(),
+                        frame.bow_counts.astype("<u2").tobytes(),
+                        bytes(data),
+                    ),
+                )
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                if new_robot and robot_id in self._robot_ids:
+                    self._robot_names.pop(self._robot_ids.pop(robot_id), None)
+                raise
+            kf_id = int(cur.lastrowid)
+            self.index.add(kf_id, rid, frame.stamp, frame.gist, frame.bow_ids, frame.bow_counts)
+        self._queue.put(kf_id)
+        self._maybe_retrain()
+        return kf_id, True
+
+    def frame_bytes(self, kf_id: int) -> bytes:
+        """The stored encoded frame of a keyframe."""
+        row = (
+            self._reader()
+            .execute("SELECT data FROM keyframes WHERE id=?", (int(kf_id),))
+            .fetchone()
+        )
+        if row is None:
+            raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
+        return bytes(row[0])
+
+    def load_frame(self, kf_id: int) -> Frame:
+        """The full stored frame of a keyframe (local features included)."""
+        return decode(self.frame_bytes(kf_id))
+
+    def keyframe_info(self, kf_id: int) -> dict:
+        row = (
+            self._reader()
+            .execute(
+                "SELECT k.id, r.name, k.stamp, k.processed, length(k.data) FROM keyframes k "
+                "JOIN robots r ON r.id = k.robot WHERE k.id=?",
+                (int(kf_id),),
+            )
+            .fetchone()
+        )
+        if row is None:
+            raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
+        return {
+            "id": row[0],
+            "robot_id": row[1],
+            "stamp": row[2],
+            "processed": bool(row[3]),
+            "bytes": row[4],
+        }
+
+    # --- queries --------------------------------------------------------------------
+
+    def robot_name(self, rid: int) -> str:
+        return self._robot_names[rid]
+
+    def robots(self) -> list[dict]:
+        rows = (
+            self._reader()
+            .execute(
+                "SELECT r.name, count(k.id), min(k.stamp), max(k.stamp) FROM robots r "
+                "LEFT JOIN keyframes k ON k.robot = r.id GROUP BY r.id ORDER BY r.name"
+            )
+            .fetchall()
+        )
+        return [
+            {"robot_id": n, "keyframes": c, "first_stamp": a, "last_stamp": b}
+            for n, c, a, b in rows
+        ]
+
+    def keyframes(self, robot_id: str, offset: int = 0, limit: int = 1000) -> list[dict]:
+        rid = self._robot(robot_id, create=False)
+        rows = (
+            self._reader()
+            .execute(
+                "SELECT id, stamp, processed FROM keyframes WHERE robot=? ORDER BY stamp "
+                "LIMIT ? OFFSET ?",
+                (rid, int(limit), int(offset)),
+            )
+            .fetchall()
+        )
+        return [{"id": i, "stamp": s, "processed": bool(p)} for i, s, p in rows]
+
+    def make_filter(
+        self,
+        robot: str | None = None,
+        exclude_robot: str | None = None,
+        max_stamp: float | None = None,
+    ) -> Filter:
+        return Filter(
+            robots=None if robot is None else {self._robot(robot, create=False)},
+            exclude_robots=set()
+            if exclude_robot is None or exclude_robot not in self._robot_ids
+            else {self._robot_ids[exclude_robot]},
+            max_stamp=max_stamp,
+        )
+
+    def query(self, frame: Frame, flt: Filter | None = None) -> CascadeResult:
+        """The cascade's answer for one frame against the stored keyframes."""
+        if frame.vocab_id != self.vocabulary.vocab_id:
+            raise BadInput(
+                f"Frame BoW is over vocabulary {frame.vocab_id!r}, this database "
+                f"uses {self.vocabulary.vocab_id!r}"
+            )
+        return run_cascade(frame, self.index, self.load_frame, self.params, flt)
+
+    def overlaps(self, robot_a: str, robot_b: str) -> list[Overlap]:
+        """Verified keyframe pairs between two robots, oriented a -> b, by stamp of a."""
+        ra, rb = self._robot(robot_a, create=False), self._robot(robot_b, create=False)
+        rows = (
+            self._reader()
+            .execute(
+                "SELECT o.kf_a, ka.stamp, o.kf_b, kb.stamp, o.inliers, o.matches, o.robot_a "
+                "FROM overlaps o JOIN keyframes ka ON ka.id=o.kf_a JOIN keyframes kb ON kb.id=o.kf_b "
+                "WHERE (o.robot_a=? AND o.robot_b=?) OR (o.robot_a=? AND o.robot_b=?)",
+                (ra, rb, rb, ra),
+            )
+            .fetchall()
+        )
+        out = []
+        for ka, sa, kb, sb, inl, m, first in rows:
+            if first != ra:
+                ka, sa, kb, sb = kb, sb, ka, sa
+            out.append(Overlap(robot_a, ka, sa, robot_b, kb, sb, inl, m))
+        return sorted(out, key=lambda o: (o.stamp_a, o.stamp_b))
+
+    def overlap_graph(self) -> list[dict]:
+        """Every robot pair with verified overlaps: count, best and total inliers."""
+        rows = (
+            self._reader()
+            .execute(
+                "SELECT robot_a, robot_b, count(*), max(inliers), sum(inliers) FROM overlaps "
+                "GROUP BY robot_a, robot_b"
+            )
+            .fetchall()
+        )
+        merged: dict[tuple[str, str], list[int]] = {}
+        for ra, rb, n, best, total in rows:
+            a, b = sorted((self._robot_names[ra], self._robot_names[rb]))
+            acc = merged.setdefault((a, b), [0, 0, 0])
+            acc[0] += n
+            acc[1] = max(acc[1], best)
+            acc[2] += total
+        return [
+            {"robot_a": a, "robot_b": b, "pairs": n, "best_inliers": best, "total_inliers": total}
+            for (a, b), (n, best, total) in sorted(merged.items())
+        ]
+
+    def pending(self) -> int:
+        """Keyframes still waiting for overlap detection."""
+        return self._queue.unfinished_tasks
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until every queued keyframe is processed; False on timeout."""
+        end = time.monotonic() + timeout
+        while self._queue.unfinished_tasks:
+            if time.monotonic() > end:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def stats(self) -> dict:
+        sizes = self.index.cluster_sizes()
+        nonempty = sizes[sizes > 0]
+        return {
+            "keyframes": len(self.index),
+            "robots": len(self._robot_ids),
+            "pending": self.pending(),
+            "clusters": int(len(sizes)),
+            "cluster_mean": float(sizes.mean()) if len(sizes) else 0.0,
+            "cluster_max": int(sizes.max()) if len(sizes) else 0,
+            "nonempty_clusters": int(len(nonempty)),
+            "overlaps": self._reader().execute("SELECT count(*) FROM overlaps").fetchone()[0],
+            "vocab_id": self.vocabulary.vocab_id,
+            "db_path": str(self.path),
+            "db_bytes": self.path.stat().st_size if self.path.exists() else 0,
+        }
+
+    # --- administration --------------------------------------------------------------
+
+    def delete_robot(self, robot_id: str) -> int:
+        """Delete a robot, its keyframes and its overlaps; returns keyframes removed."""
+        with self._write_lock:
+            rid = self._robot(robot_id, create=False)
+            ids = np.array(
+                [r[0] for r in self._db.execute("SELECT id FROM keyframes WHERE robot=?", (rid,))],
+                dtype=np.int64,
+            )
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute("DELETE FROM overlaps WHERE robot_a=? OR robot_b=?", (rid, rid))
+                self._db.execute("DELETE FROM keyframes WHERE robot=?", (rid,))
+                self._db.execute("DELETE FROM robots WHERE id=?", (rid,))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self.index.remove(ids)
+            del self._robot_ids[robot_id]
+            del self._robot_names[rid]
+        return len(ids)
+
+    def retrain(self, n_clusters: int | None = None) -> dict:
+        """k-means the coarse codebook anew from the stored GISTs and swap the index in;
+        queries and ingest go on meanwhile (thesis Fig. 2.12: uneven clusters)."""
+        if not self._retraining.acquire(blocking=False):
+            raise Conflict("A retraining is already running")
+        try:
+            t = time.perf_counter()
+            k = n_clusters or self.retrain_policy.target_clusters(len(self.index))
+            sizes = self.index.retrain(k)
+            book = self.index.codebook.astype(np.float32)
+            with self._write_lock:
+                self._db.execute(
+                    "INSERT INTO codebooks (created, n_clusters, dim, centroids) "
+                    "VALUES (?, ?, ?, ?)",
+                    (time.time(), len(book), book.shape[1], book.tobytes()),
+                )
+            info = {
+                "clusters": int(len(sizes)),
+                "keyframes": int(sizes.sum()),
+                "cluster_max": int(sizes.max()),
+                "cluster_mean": float(sizes.mean()),
+                "seconds": time.perf_counter() - t,
+            }
+            log.info("codebook retrained: %s", info)
+            return info
+        finally:
+            self._retraining.release()
+
+    def needs_retrain(self) -> bool:
+        p, n = self.retrain_policy, len(self.index)
+        if not p.enabled or n < p.min_keyframes:
+            return False
+        sizes = self.index.cluster_sizes()
+        mean = max(float(sizes.mean()), 1e-9)
+        return mean > p.max_mean_list or sizes.max() > p.max_imbalance * mean
+
+    def _maybe_retrain(self) -> None:
+        n = len(self.index)
+        if n % 500 == 0 and not self._retraining.locked() and self.needs_retrain():
+            threading.Thread(target=self._retrain_quietly, daemon=True).start()
+
+    def _retrain_quietly(self) -> None:
+        try:
+            self.retrain()
+        except Conflict:
+            pass
+        except Exception:
+            log.exception("background codebook retraining failed")
+
+    # --- overlap worker ---------------------------------------------------------------
+
+    def process(self, kf_id: int) -> list[Overlap]:
+        """Find and record this keyframe's verified winner in each other robot."""
+        try:
+            frame = self.load_frame(kf_id)
+        except UnknownKeyframe:
+            return []  # deleted meanwhile
+        rid = self._robot_ids.get(frame.robot_id)
+        if rid is None:
+            return []
+        result = run_cascade(
+            frame, self.index, self.load_frame, self.params, Filter(exclude_robots={rid})
+        )
+        best: dict[int, object] = {}
+        for c in result.verified:
+            if c.robot not in best:
+                best[c.robot] = c
+        now = time.time()
+        with self._write_lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for c in best.values():
+                    self._db.execute(
+                        "INSERT OR REPLACE INTO overlaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        (
+                            kf_id,
+                            c.kf_id,
+                            rid,
+                            c.robot,
+                            c.verification.inliers,
+                            c.verification.matches,
+                            now,
+                        ),
+                    )
+                self._db.execute("UPDATE keyframes SET processed=1 WHERE id=?", (kf_id,))
+                self._db.execute("COMMIT")
+            except sqlite3.IntegrityError:
+                self._db.execute("ROLLBACK")  # a keyframe was deleted meanwhile
+                return []
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        return [
+            Overlap(
+                frame.robot_id,
+                kf_id,
+                frame.stamp,
+                self._robot_names.get(c.robot, "?"),
+                c.kf_id,
+                c.stamp,
+                c.verification.inliers,
+                c.verification.matches,
+            )
+            for c in best.values()
+        ]
+
+    def _work(self) -> None:
+        while True:
+            kf = self._queue.get()
+            try:
+                if kf is None:
+                    return
+                self.process(kf)
+            except Exception:
+                log.exception("overlap detection failed for keyframe %s", kf)
+            finally:
+                self._queue.task_done()
+
+    def process_pending(self) -> None:
+        """Synchronously process queued keyframes (for use without the background worker)."""
+        while True:
+            try:
+                kf = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                if kf is not None:
+                    self.process(kf)
+            finally:
+                self._queue.task_done()
+
+    def close(self, drain_timeout: float = 10.0) -> None:
+        """Finish in-flight writes, stop the worker (unprocessed keyframes are re-queued at
+        the next start) and close the database."""
+        with self._write_lock:
+            self._closed = True
+        if self._worker is not None:
+            self.wait_idle(drain_timeout)
+            self._queue.put(None)
+            self._worker.join(timeout=drain_timeout)
+        with self._write_lock:
+            self._db.close()

@@ -1,0 +1,397 @@
+"""The retrieval cascade (thesis Algorithm 3) over an in-memory place index.
+
+Global stage: the query's GIST goes to its m nearest coarse clusters (an IVF index,
+faiss, vectors stored as float16), every keyframe in those inverted lists within GIST
+distance `tr` is a candidate, the closest `max_candidates` are kept. Local stage: the
+Bhattacharyya distance between bags of words (eq. 2.9) filters and ranks them, the best
+few are matched with SIFT and, with N > 8 matches, verified by a fundamental-matrix
+RANSAC. The winner is the verified candidate with most inliers, or none.
+
+Only GIST, BoW and ids live in memory (about 3 KB per keyframe); each candidate's local
+features are loaded from storage when the local stage needs them.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import faiss
+import numpy as np
+
+from shared.errors import BadInput
+from shared.frame import Frame
+from shared.matching import DEFAULT_MATCH_PARAMS, MatchParams, Verification, verify_pair
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CascadeParams:
+    """Cascade settings; distances are between unit-length GIST vectors (0..2)."""
+
+    m_clusters: int = 4
+    gist_threshold: float = 0.75
+    max_candidates: int = 300
+    bow_threshold: float = 0.92
+    max_verify: int = 12
+    max_verify_per_robot: int = 4
+    match: MatchParams = DEFAULT_MATCH_PARAMS
+
+
+DEFAULT_CASCADE = CascadeParams()
+
+
+@dataclass
+class Stage:
+    name: str
+    kept: int
+    ms: float
+
+
+@dataclass
+class Candidate:
+    kf_id: int
+    robot: int
+    stamp: float
+    gist_distance: float
+    bow_distance: float = 1.0
+    verification: Verification | None = None
+
+
+@dataclass
+class CascadeResult:
+    """The winner (or None), every verified candidate (most inliers first), the stages."""
+
+    winner: Candidate | None
+    verified: list[Candidate]
+    stages: list[Stage]
+    database_size: int
+    total_ms: float = 0.0
+
+
+class _Grow:
+    """Append-only numpy buffer with amortised doubling."""
+
+    def __init__(self, dtype, width: int | None = None):
+        shape = (1024,) if width is None else (1024, width)
+        self.buf = np.zeros(shape, dtype=dtype)
+        self.n = 0
+
+    def extend(self, values: np.ndarray) -> None:
+        need = self.n + len(values)
+        if need > len(self.buf):
+            new = np.zeros((max(need, 2 * len(self.buf)),) + self.buf.shape[1:], self.buf.dtype)
+            new[: self.n] = self.buf[: self.n]
+            self.buf = new
+        self.buf[self.n : need] = values
+        self.n = need
+
+    @property
+    def view(self) -> np.ndarray:
+        return self.buf[: self.n]
+
+
+@dataclass
+class Filter:
+    """Which stored keyframes a query may return."""
+
+    robots: set[int] | None = None  # only these robot codes
+    exclude_robots: set[int] = field(default_factory=set)
+    max_stamp: float | None = None  # only keyframes strictly older (loop closure)
+
+
+class PlaceIndex:
+    """GIST IVF index plus bags of words in CSR form, keyed by keyframe id (increasing)."""
+
+    def __init__(self, codebook: np.ndarray, n_words: int):
+        self.dim = codebook.shape[1]
+        self.n_words = n_words
+        self._lock = threading.RLock()
+        self.ids = _Grow(np.int64)
+        self.robots = _Grow(np.int32)
+        self.stamps = _Grow(np.float64)
+        self.alive = _Grow(np.bool_)
+        self.gists = _Grow(np.float16, self.dim)
+        self.bow_ptr = _Grow(np.int64)
+        self.bow_ptr.extend(np.zeros(1, np.int64))
+        self.bow_ids = _Grow(np.uint32)
+        self.bow_counts = _Grow(np.uint16)
+        self.n_alive = 0
+        self.ivf = self._make_ivf(codebook)
+
+    def _make_ivf(self, codebook: np.ndarray) -> faiss.IndexIVFScalarQuantizer:
+        codebook = np.ascontiguousarray(codebook, dtype=np.float32)
+        quantizer = faiss.IndexFlatL2(self.dim)
+        quantizer.add(codebook)
+        ivf = faiss.IndexIVFScalarQuantizer(
+            quantizer, self.dim, len(codebook), faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_L2
+        )
+        ivf.is_trained = True  # the coarse centroids are given; fp16 needs no training
+        ivf.make_direct_map(False)
+        return ivf
+
+    @property
+    def codebook(self) -> np.ndarray:
+        return self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist)
+
+    def __len__(self) -> int:
+        return self.n_alive
+
+    def add(
+        self,
+        kf_id: int,
+        robot: int,
+        stamp: float,
+        gist: np.ndarray,
+        bow_ids: np.ndarray,
+        bow_counts: np.ndarray,
+    ) -> None:
+        """Add one keyframe; ids must increase (SQLite rowids do)."""
+        self.add_many(
+            np.array([kf_id]),
+            np.array([robot]),
+            np.array([stamp]),
+            gist.reshape(1, -1),
+            [bow_ids],
+            [bow_counts],
+        )
+
+    def add_many(self, kf_ids, robots, stamps, gists, bow_ids, bow_counts) -> None:
+        gists = np.asarray(gists, dtype=np.float16).reshape(-1, self.dim)
+        kf_ids = np.asarray(kf_ids, dtype=np.int64)
+        with self._lock:
+            if self.ids.n and len(kf_ids) and kf_ids[0] <= self.ids.view[-1]:
+                raise BadInput(f"keyframe ids must increase: {kf_ids[0]} after {self.ids.view[-1]}")
+            self.ids.extend(kf_ids)
+            self.robots.extend(np.asarray(robots, np.int32))
+            self.stamps.extend(np.asarray(stamps, np.float64))
+            self.alive.extend(np.ones(len(kf_ids), bool))
+            self.gists.extend(gists)
+            lengths = np.array([len(b) for b in bow_ids], dtype=np.int64)
+            self.bow_ptr.extend(self.bow_ptr.view[-1] + np.cumsum(lengths))
+            if len(bow_ids):
+                self.bow_ids.extend(np.concatenate(bow_ids).astype(np.uint32))
+                self.bow_counts.extend(np.concatenate(bow_counts).astype(np.uint16))
+            self.ivf.add_with_ids(gists.astype(np.float32), kf_ids)
+            self.n_alive += len(kf_ids)
+
+    def remove(self, kf_ids: np.ndarray) -> int:
+        """Tombstone keyframes and drop them from the IVF lists; returns how many."""
+        kf_ids = np.asarray(kf_ids, dtype=np.int64)
+        with self._lock:
+            slots = self._slots(kf_ids)
+            slots = slots[self.alive.view[slots]]
+            self.alive.buf[slots] = False
+            self.n_alive -= len(slots)
+            if len(slots):
+                self.ivf.remove_ids(faiss.IDSelectorBatch(self.ids.view[slots]))
+            return len(slots)
+
+    def _slots(self, kf_ids: np.ndarray) -> np.ndarray:
+        """Buffer positions of the known ids among kf_ids."""
+        ids = self.ids.view
+        s = np.searchsorted(ids, kf_ids)
+        ok = s < len(ids)
+        ok[ok] = ids[s[ok]] == kf_ids[ok]
+        return s[ok]
+
+    def cluster_sizes(self) -> np.ndarray:
+        """Keyframes per coarse cluster, shape (n_clusters,)."""
+        inv = self.ivf.invlists
+        return np.array([inv.list_size(i) for i in range(self.ivf.nlist)])
+
+    def retrain(self, n_clusters: int, seed: int = 0) -> np.ndarray:
+        """New k-means codebook over the stored GISTs and a rebuilt IVF, swapped in at once.
+
+        Queries keep using the old index until the swap; returns the new cluster sizes.
+        """
+        from shared.vocabulary import kmeans
+
+        with self._lock:
+            alive = self.alive.view.copy()
+            gists = self.gists.view[alive].astype(np.float32)
+            ids = self.ids.view[alive].copy()
+        if len(gists) < n_clusters:
+            raise BadInput(f"{len(gists)} keyframes cannot make {n_clusters} clusters")
+        ivf = self._make_ivf(kmeans(gists, n_clusters, seed=seed))
+        ivf.add_with_ids(gists, ids)
+        with self._lock:
+            # keyframes added or removed while training
+            n_before = len(alive)
+            late = np.flatnonzero(self.alive.view[n_before:]) + n_before
+            if len(late):
+                ivf.add_with_ids(self.gists.view[late].astype(np.float32), self.ids.view[late])
+            gone = ~self.alive.view[:n_before] & alive
+            if gone.any():
+                ivf.remove_ids(faiss.IDSelectorBatch(self.ids.view[:n_before][gone]))
+            self.ivf = ivf
+            return self.cluster_sizes()
+
+    # --- cascade stages -------------------------------------------------------------
+
+    def global_stage(
+        self, gist: np.ndarray, p: CascadeParams, flt: Filter
+    ) -> tuple[list[Candidate], list[Stage]]:
+        """m nearest clusters, then the GIST threshold and the cap."""
+        q = np.asarray(gist, dtype=np.float32).reshape(1, -1)
+        if q.shape[1] != self.dim:
+            raise BadInput(f"Expected a GIST of {self.dim} values, got {q.shape[1]}")
+        t0 = time.perf_counter()
+        with self._lock:
+            ivf = self.ivf
+            m = min(p.m_clusters, ivf.nlist)
+            _, lists = ivf.quantizer.search(q, m)
+            in_clusters = int(sum(ivf.invlists.list_size(int(c)) for c in lists[0] if c >= 0))
+            ivf.nprobe = m
+            lims, d2, found = ivf.range_search(q, p.gist_threshold**2)
+            d2, found = d2[: int(lims[1])], found[: int(lims[1])]
+            slots = np.searchsorted(self.ids.view, found)
+            robots = self.robots.view[slots]
+            stamps = self.stamps.view[slots]
+        t1 = time.perf_counter()
+        keep = np.ones(len(slots), bool)
+        if flt.robots is not None:
+            keep &= np.isin(robots, list(flt.robots))
+        if flt.exclude_robots:
+            keep &= ~np.isin(robots, list(flt.exclude_robots))
+        if flt.max_stamp is not None:
+            keep &= stamps < flt.max_stamp
+        idx = np.flatnonzero(keep)
+        idx = idx[np.argsort(d2[idx], kind="stable")][: p.max_candidates]
+        dist = np.sqrt(np.maximum(d2[idx], 0))
+        cands = [
+            Candidate(int(found[i]), int(robots[i]), float(stamps[i]), float(d))
+            for i, d in zip(idx, dist, strict=True)
+        ]
+        t2 = time.perf_counter()
+        return cands, [
+            Stage("clusters", in_clusters, 1000 * (t1 - t0) / 2),
+            Stage("gist_threshold", len(cands), 1000 * ((t1 - t0) / 2 + t2 - t1)),
+        ]
+
+    def bow_distances(
+        self, q_ids: np.ndarray, q_counts: np.ndarray, kf_ids: np.ndarray
+    ) -> np.ndarray:
+        """Bhattacharyya distances from a query BoW to the stored keyframes kf_ids."""
+        with self._lock:
+            slots = np.searchsorted(self.ids.view, np.asarray(kf_ids, np.int64))
+            return self._bow_by_slot(q_ids, q_counts, slots)
+
+    def _bow_by_slot(self, q_ids, q_counts, slots) -> np.ndarray:
+        if len(slots) == 0:
+            return np.zeros(0)
+        qs = np.zeros(self.n_words, np.float64)
+        total = float(np.sum(q_counts))
+        if total == 0:
+            return np.ones(len(slots))
+        qs[q_ids.astype(np.int64)] = np.sqrt(q_counts / total)
+        ptr = self.bow_ptr.view
+        starts, ends = ptr[slots], ptr[slots + 1]
+        lengths = ends - starts
+        flat = np.repeat(starts - np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths)
+        flat = flat + np.arange(lengths.sum())
+        words = self.bow_ids.buf[flat].astype(np.int64)
+        counts = self.bow_counts.buf[flat].astype(np.float64)
+        owner = np.repeat(np.arange(len(slots)), lengths)
+        tot = np.bincount(owner, weights=counts, minlength=len(slots))
+        rho = np.bincount(owner, weights=qs[words] * np.sqrt(counts), minlength=len(slots))
+        rho = np.where(tot > 0, rho / np.sqrt(np.maximum(tot, 1e-12)), 0.0)
+        return np.sqrt(np.clip(1.0 - rho, 0.0, 1.0))
+
+    def brute_force_bow(
+        self, q_ids: np.ndarray, q_counts: np.ndarray, flt: Filter, k: int
+    ) -> list[Candidate]:
+        """Baseline: the query's BoW scored against every stored keyframe (the thesis's
+        visual-similarity-matrix method); the k best as candidates."""
+        with self._lock:
+            keep = self.alive.view.copy()
+            robots, stamps = self.robots.view, self.stamps.view
+            if flt.robots is not None:
+                keep &= np.isin(robots, list(flt.robots))
+            if flt.exclude_robots:
+                keep &= ~np.isin(robots, list(flt.exclude_robots))
+            if flt.max_stamp is not None:
+                keep &= stamps < flt.max_stamp
+            slots = np.flatnonzero(keep)
+            d = self._bow_by_slot(q_ids, q_counts, slots)
+            best = np.argsort(d, kind="stable")[:k]
+            return [
+                Candidate(
+                    int(self.ids.view[slots[i]]),
+                    int(robots[slots[i]]),
+                    float(stamps[slots[i]]),
+                    float("nan"),
+                    float(d[i]),
+                )
+                for i in best
+            ]
+
+
+def local_stage(
+    query: Frame,
+    cands: list[Candidate],
+    index: PlaceIndex,
+    load: Callable[[int], Frame],
+    p: CascadeParams,
+) -> tuple[list[Candidate], list[Stage]]:
+    """BoW filter and ranking, then SIFT matching and epipolar verification."""
+    t0 = time.perf_counter()
+    if cands:
+        d = index.bow_distances(query.bow_ids, query.bow_counts, np.array([c.kf_id for c in cands]))
+        for c, di in zip(cands, d, strict=True):
+            c.bow_distance = float(di)
+    passed = sorted(
+        (c for c in cands if c.bow_distance < p.bow_threshold), key=lambda c: c.bow_distance
+    )
+    chosen, per_robot = [], {}
+    for c in passed:
+        if per_robot.get(c.robot, 0) < p.max_verify_per_robot:
+            per_robot[c.robot] = per_robot.get(c.robot, 0) + 1
+            chosen.append(c)
+        if len(chosen) >= p.max_verify:
+            break
+    t1 = time.perf_counter()
+    matched, verified = 0, []
+
+    for c in chosen:
+        other = load(c.kf_id)
+        c.verification = verify_pair(
+            query.keypoints, query.descriptors, other.keypoints, other.descriptors, p.match
+        )
+        matched += c.verification.matches >= p.match.min_matches
+        if c.verification.verified:
+            verified.append(c)
+    verified.sort(key=lambda c: -c.verification.inliers)
+    match_ms = sum(c.verification.match_ms for c in chosen)
+    ransac_ms = sum(c.verification.ransac_ms for c in chosen)
+    load_ms = 1000 * (time.perf_counter() - t1) - match_ms - ransac_ms
+    return verified, [
+        Stage("bow", len(passed), 1000 * (t1 - t0)),
+        Stage("sift_matches", matched, match_ms + load_ms),
+        Stage("epipolar", len(verified), ransac_ms),
+    ]
+
+
+def run_cascade(
+    query: Frame,
+    index: PlaceIndex,
+    load: Callable[[int], Frame],
+    p: CascadeParams = DEFAULT_CASCADE,
+    flt: Filter | None = None,
+) -> CascadeResult:
+    """Algorithm 3: the winner among stored keyframes for one query frame, or none."""
+    t0 = time.perf_counter()
+    flt = flt or Filter()
+    cands, stages = index.global_stage(query.gist, p, flt)
+    verified, local = local_stage(query, cands, index, load, p)
+    return CascadeResult(
+        verified[0] if verified else None,
+        verified,
+        stages + local,
+        len(index),
+        1000 * (time.perf_counter() - t0),
+    )
