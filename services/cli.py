@@ -130,8 +130,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
         app = create_aligner(AlignerSettings())
     port = args.port or (8100 if args.service == "place-db" else 8200)
-    uvicorn.run(app, host=args.host, port=port, log_level="info" if args.verbose else "warning",
-                timeout_graceful_shutdown=30)
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=port,
+        log_level="info" if args.verbose else "warning",
+        timeout_graceful_shutdown=30,
+    )
     return 0
 
 
@@ -144,8 +149,13 @@ def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tup
     rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir))
     n = len(keyframe_indices(rec, _policy(args)))
     frames = extract_recording(rec, FrameExtractor(vocab), _policy(args))
-    for frame in tqdm(frames, total=n, desc=f"ingest {rec.robot_id}", unit="kf",
-                      disable=getattr(args, "quiet", False)):
+    for frame in tqdm(
+        frames,
+        total=n,
+        desc=f"ingest {rec.robot_id}",
+        unit="kf",
+        disable=getattr(args, "quiet", False),
+    ):
         client.add_keyframe(frame)
     return rec.robot_id, n
 
@@ -158,8 +168,10 @@ def _checked_vocabulary(client, path):
     vocab = load_vocabulary(path)
     served = client.vocabulary()["vocab_id"]
     if served != vocab.vocab_id:
-        raise BadVocabulary(f"The place database uses vocabulary {served}, this CLI loaded "
-                            f"{vocab.vocab_id}: pass the same file with --vocab")
+        raise BadVocabulary(
+            f"The place database uses vocabulary {served}, this CLI loaded "
+            f"{vocab.vocab_id}: pass the same file with --vocab"
+        )
     return vocab
 
 
@@ -183,9 +195,18 @@ def cmd_overlaps(args: argparse.Namespace) -> int:
 
     with PlaceDBClient(args.place_db) as client:
         pairs = client.overlaps(args.robot_a, args.robot_b, wait=args.wait)
-    items = [{"robot_a": p["robot_a"], "stamp_a": p["stamp_a"], "robot_b": p["robot_b"],
-              "stamp_b": p["stamp_b"], "inliers": p["inliers"],
-              "keyframe_a": p["keyframe_a"], "keyframe_b": p["keyframe_b"]} for p in pairs]
+    items = [
+        {
+            "robot_a": p["robot_a"],
+            "stamp_a": p["stamp_a"],
+            "robot_b": p["robot_b"],
+            "stamp_b": p["stamp_b"],
+            "inliers": p["inliers"],
+            "keyframe_a": p["keyframe_a"],
+            "keyframe_b": p["keyframe_b"],
+        }
+        for p in pairs
+    ]
     if args.json:
         print(json.dumps({"overlaps": items}, indent=2))
     else:
@@ -241,8 +262,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("robot_b")
     p.add_argument("--place-db", required=True, metavar="URL")
     p.add_argument("--json", action="store_true")
-    p.add_argument("--wait", type=float, default=120.0,
-                   help="seconds to wait for queued overlap detection (default 120)")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=120.0,
+        help="seconds to wait for queued overlap detection (default 120)",
+    )
     p.set_defaults(func=cmd_overlaps)
     return parser
 

@@ -78,10 +78,11 @@ async def read_body(request: Request, limit: int) -> bytes:
     declared = request.headers.get("content-length")
     if declared is not None:
         try:
-            if int(declared) > limit:
-                raise PayloadTooLarge(f"Body of {declared} bytes exceeds the {limit}-byte limit")
+            length = int(declared)
         except ValueError as exc:
             raise BadInput(f"Bad Content-Length {declared!r}") from exc
+        if length > limit:
+            raise PayloadTooLarge(f"Body of {length} bytes exceeds the {limit}-byte limit")
     chunks, size = [], 0
     async for chunk in request.stream():
         size += len(chunk)

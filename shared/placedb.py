@@ -382,7 +382,8 @@ class PlaceDB:
             self._reader()
             .execute(
                 "SELECT o.kf_a, ka.stamp, o.kf_b, kb.stamp, o.inliers, o.matches, o.robot_a "
-                "FROM overlaps o JOIN keyframes ka ON ka.id=o.kf_a JOIN keyframes kb ON kb.id=o.kf_b "
+                "FROM overlaps o JOIN keyframes ka ON ka.id=o.kf_a "
+                "JOIN keyframes kb ON kb.id=o.kf_b "
                 "WHERE (o.robot_a=? AND o.robot_b=?) OR (o.robot_a=? AND o.robot_b=?)",
                 (ra, rb, rb, ra),
             )

@@ -1,0 +1,140 @@
+"""The place database over HTTP (in-process TestClient)."""
+
+import re
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from services.place_db.config import Settings
+from services.place_db.main import create_app
+from shared.dataset import read_recording
+from shared.extract import FrameExtractor, extract_recording
+from shared.frame import encode
+
+OCTET = {"content-type": "application/octet-stream"}
+
+
+@pytest.fixture(scope="module")
+def frames(sun3d, vocabulary):
+    x = FrameExtractor(vocabulary)
+    return {
+        r: [encode(f) for f in extract_recording(read_recording(sun3d / r), x)]
+        for r in ("robot_a", "robot_b")
+    }
+
+
+@pytest.fixture
+def settings(tmp_path):
+    return Settings(data_dir=tmp_path, max_body_bytes=200_000)
+
+
+@pytest.fixture
+def client(settings):
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+def _post(client, robot, data):
+    return client.post(f"/robots/{robot}/keyframes", content=data, headers=OCTET)
+
+
+def test_ingest_query_and_overlaps(client, frames):
+    for robot, datas in frames.items():
+        for d in datas:
+            assert _post(client, robot, d).status_code == 201
+    robots = {r["robot_id"]: r["keyframes"] for r in client.get("/robots").json()["robots"]}
+    assert robots == {"robot_a": len(frames["robot_a"]), "robot_b": len(frames["robot_b"])}
+
+    r = client.post(
+        "/query", content=frames["robot_b"][0], headers=OCTET, params={"robot": "robot_a"}
+    ).json()
+    assert [s["name"] for s in r["stages"]] == [
+        "clusters",
+        "gist_threshold",
+        "bow",
+        "sift_matches",
+        "epipolar",
+    ]
+    assert r["database_size"] == sum(robots.values())
+    if r["winner"] is not None:
+        assert r["winner"]["robot_id"] == "robot_a" and r["winner"]["inliers"] >= 10
+
+    ov = client.get(
+        "/overlaps", params={"robot_a": "robot_b", "robot_b": "robot_a", "wait": 60}
+    ).json()
+    assert ov["pending"] == 0 and len(ov["overlaps"]) >= len(frames["robot_b"]) / 2
+    assert all(p["robot_a"] == "robot_b" for p in ov["overlaps"])
+    graph = client.get("/overlaps").json()["graph"]
+    assert graph[0]["robot_a"] == "robot_a" and graph[0]["pairs"] == len(ov["overlaps"])
+    kf = ov["overlaps"][0]["keyframe_b"]
+    assert client.get(f"/keyframes/{kf}/frame").content in frames["robot_a"]
+
+
+def test_duplicates_are_idempotent_and_conflicts_refused(client, frames):
+    d = frames["robot_a"][0]
+    first = _post(client, "robot_a", d)
+    again = _post(client, "robot_a", d)
+    assert (first.status_code, again.status_code) == (201, 200)
+    assert first.json()["id"] == again.json()["id"]
+    other = frames["robot_a"][1]
+    from shared.frame import decode
+
+    f = decode(other)
+    f.stamp = decode(d).stamp
+    r = _post(client, "robot_a", encode(f))
+    assert r.status_code == 409 and "already has a different keyframe" in r.json()["detail"]
+
+
+@pytest.mark.parametrize(
+    "mutate, status, msg",
+    [
+        (lambda d: d[: len(d) // 2], 400, "Truncated|checksum"),
+        (lambda d: b"", 400, "Truncated"),
+        (lambda d: b"\x00" * 100, 400, "magic"),
+        (lambda d: d + bytes(300_000), 413, "exceeds"),
+    ],
+)
+def test_bad_bodies_answer_4xx_and_lose_nothing(client, frames, mutate, status, msg):
+    assert _post(client, "robot_a", frames["robot_a"][0]).status_code == 201
+    r = _post(client, "robot_a", mutate(frames["robot_a"][1]))
+    assert r.status_code == status
+    assert re.search(msg, r.json()["detail"])
+    assert client.get("/robots").json()["robots"][0]["keyframes"] == 1
+
+
+def test_robot_mismatch_unknown_robot_and_bad_params(client, frames):
+    r = _post(client, "robot_b", frames["robot_a"][0])
+    assert r.status_code == 422 and "posted for 'robot_b'" in r.json()["detail"]
+    assert _post(client, "bad id!", frames["robot_a"][0]).status_code == 422
+    r = client.get("/overlaps", params={"robot_a": "ghost", "robot_b": "nobody"})
+    assert r.status_code == 404 and "ghost" in r.json()["detail"]
+    assert client.get("/overlaps", params={"robot_a": "x"}).status_code == 422
+    assert client.delete("/robots/ghost").status_code == 404
+    assert client.get("/keyframes/12345/frame").status_code == 404
+
+
+def test_delete_robot_and_restart_keep_the_rest(settings, frames):
+    with TestClient(create_app(settings)) as c:
+        for robot, datas in frames.items():
+            for d in datas[:4]:
+                assert _post(c, robot, d).status_code == 201
+        assert c.delete("/robots/robot_b").json()["deleted_keyframes"] == 4
+        c.get("/overlaps", params={"wait": 30})
+    with TestClient(create_app(settings)) as c:
+        robots = c.get("/robots").json()["robots"]
+        assert [(r["robot_id"], r["keyframes"]) for r in robots] == [("robot_a", 4)]
+        assert c.get("/healthz").json()["keyframes"] == 4
+        st = c.post("/admin/retrain", params={"clusters": 2}).json()
+        assert st["clusters"] == 2 and st["keyframes"] == 4
+        assert c.get("/openapi.json").status_code == 200
+
+
+def test_vocabulary_mismatch_is_refused(client, frames):
+    from shared.frame import decode
+
+    f = decode(frames["robot_a"][0])
+    f.vocab_id = "0123456789abcdef"
+    r = _post(client, "robot_a", encode(f))
+    assert r.status_code == 422 and "vocabulary" in r.json()["detail"]
+    assert np.isfinite(client.get("/stats").json()["cluster_mean"])
