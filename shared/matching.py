@@ -23,8 +23,13 @@ class MatchParams:
     min_matches: int = 9
     ransac_px: float = 2.0
     confidence: float = 0.999
-    min_inliers: int = 10
+    min_inliers: int = 15
     min_inlier_ratio: float = 0.3
+    # With depth on both sides: fewer epipolar inliers suffice when enough of them also
+    # agree with one rigid motion of their 3D points (a test random matches fail).
+    min_inliers_3d_check: int = 10
+    min_rigid_inliers: int = 6
+    rigid_tol_m: float = 0.1
 
 
 DEFAULT_MATCH_PARAMS = MatchParams()
@@ -41,6 +46,7 @@ class Verification:
     verified: bool
     match_ms: float = 0.0
     ransac_ms: float = 0.0
+    rigid_inliers: int = -1  # -1: no 3D check made
 
 
 def match_descriptors(
@@ -73,10 +79,15 @@ def verify_pair(
     kp_b: np.ndarray,
     desc_b: np.ndarray,
     params: MatchParams = DEFAULT_MATCH_PARAMS,
+    points_a: tuple[np.ndarray, np.ndarray] | None = None,
+    points_b: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Verification:
     """Match two frames' features and verify them with a fundamental-matrix RANSAC.
 
     kp_*: ndarray of shape (N, 2) pixel positions; desc_*: ndarray of shape (N, 128).
+    points_*: optional (points (N, 3), valid (N,)) of each feature in its robot's map;
+    with both, a pair with `min_inliers_3d_check` epipolar inliers is also verified when
+    `min_rigid_inliers` of them agree with one rigid motion.
     """
     t0 = time.perf_counter()
     ia, ib = match_descriptors(desc_a, desc_b, params.ratio)
@@ -97,4 +108,20 @@ def verify_pair(
     inl = mask.ravel().astype(bool)
     k = int(inl.sum())
     ok = k >= params.min_inliers and k >= params.min_inlier_ratio * n
-    return Verification(n, k, ia[inl], ib[inl], ok, *ms)
+    rigid = -1
+    if points_a is not None and points_b is not None and k >= params.min_inliers_3d_check:
+        rigid = _rigid_support(ia[inl], ib[inl], points_a, points_b, params.rigid_tol_m)
+        ok = (ok or rigid >= params.min_rigid_inliers) and k >= params.min_inlier_ratio * n
+    return Verification(n, k, ia[inl], ib[inl], ok, *ms, rigid_inliers=rigid)
+
+
+def _rigid_support(ia, ib, points_a, points_b, tol: float) -> int:
+    """How many matched features with depth on both sides fit one rigid motion."""
+    from shared.registration import ransac_rigid
+
+    (pa, va), (pb, vb) = points_a, points_b
+    both = va[ia] & vb[ib]
+    if both.sum() < 3:
+        return 0
+    _, inl = ransac_rigid(pb[ib[both]], pa[ia[both]], tol)
+    return int(inl.sum())

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.errors import BadInput, Conflict, UnknownKeyframe, UnknownRobot
+from shared.errors import BadInput, Conflict, Unavailable, UnknownKeyframe, UnknownRobot
 from shared.frame import Frame, check_robot_id, decode
 from shared.retrieval import (
     DEFAULT_CASCADE,
@@ -76,6 +76,18 @@ class Overlap:
     matches: int
 
 
+@dataclass(eq=False)
+class _Pending:
+    """One frame waiting for the group commit."""
+
+    robot_id: str
+    frame: Frame
+    data: bytes
+    result: tuple[int, bool] | None = None
+    error: Exception | None = None
+    done: bool = False
+
+
 @dataclass(frozen=True)
 class RetrainPolicy:
     """When the coarse codebook no longer fits the stored GISTs (thesis Fig. 2.12)."""
@@ -106,6 +118,8 @@ class PlaceDB:
         self.params = params
         self.retrain_policy = retrain or RetrainPolicy()
         self._write_lock = threading.Lock()
+        self._pending_lock = threading.Lock()
+        self._pending: list[_Pending] = []
         self._local = threading.local()
         self._db = self._connect()
         self._init_schema()
@@ -225,8 +239,10 @@ class PlaceDB:
         Re-sending the identical frame is idempotent; a different frame at the same
         stamp is a Conflict. Returns only once the keyframe is durably committed.
         """
+        return self.add_keyframes(robot_id, [data])[0]
+
+    def _check(self, robot_id: str, data: bytes) -> Frame:
         frame = decode(data)
-        check_robot_id(robot_id)
         if frame.robot_id != robot_id:
             raise BadInput(f"Frame is of robot {frame.robot_id!r}, posted for {robot_id!r}")
         if frame.vocab_id != self.vocabulary.vocab_id:
@@ -241,49 +257,104 @@ class PlaceDB:
                 f"BoW word id {int(frame.bow_ids.max())} outside the "
                 f"{self.vocabulary.n_words}-word vocabulary"
             )
+        return frame
+
+    def add_keyframes(self, robot_id: str, datas: list[bytes]) -> list[tuple[int, bool]]:
+        """Store encoded frames of one robot durably; returns (id, created) for each.
+
+        Group commit: concurrent callers queue their frames, and whoever holds the write
+        lock commits everything queued in one transaction (one fsync for many robots).
+        """
+        check_robot_id(robot_id)
+        items = [_Pending(robot_id, self._check(robot_id, d), bytes(d)) for d in datas]
+        with self._pending_lock:
+            self._pending.extend(items)
         with self._write_lock:
-            if self._closed:
-                raise BadInput("place database is shutting down")
-            rid = self._robot_ids.get(robot_id)
-            if rid is not None:
+            if not items[-1].done:
+                with self._pending_lock:
+                    batch, self._pending = self._pending, []
+                self._commit(batch)
+        for it in items:
+            if it.error is not None:
+                raise it.error
+        return [it.result for it in items]
+
+    def _commit(self, batch: list[_Pending]) -> None:
+        """Write a batch in one transaction (caller holds the write lock)."""
+        if self._closed:
+            for it in batch:
+                it.error, it.done = Unavailable("place database is shutting down"), True
+            return
+        new_robots = [n for n in {it.robot_id for it in batch} if n not in self._robot_ids]
+        added: list[_Pending] = []
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            for it in batch:
+                rid = self._robot(it.robot_id, create=True)
                 row = self._db.execute(
-                    "SELECT id, data FROM keyframes WHERE robot=? AND stamp=?", (rid, frame.stamp)
+                    "SELECT id, data FROM keyframes WHERE robot=? AND stamp=?",
+                    (rid, it.frame.stamp),
                 ).fetchone()
-                if row is not None:
-                    if bytes(row[1]) == bytes(data):
-                        return int(row[0]), False
-                    raise Conflict(
-                        f"Robot {robot_id!r} already has a different keyframe at "
-                        f"stamp {frame.stamp}"
+                if row is None and any(
+                    o.robot_id == it.robot_id and o.frame.stamp == it.frame.stamp for o in added
+                ):
+                    row = next(
+                        (o.result[0], o.data)
+                        for o in added
+                        if o.robot_id == it.robot_id and o.frame.stamp == it.frame.stamp
                     )
-            new_robot = rid is None
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                rid = self._robot(robot_id, create=True)
+                if row is not None:
+                    if bytes(row[1]) == it.data:
+                        it.result = (int(row[0]), False)
+                    else:
+                        it.error = Conflict(
+                            f"Robot {it.robot_id!r} already has a different "
+                            f"keyframe at stamp {it.frame.stamp}"
+                        )
+                    continue
+                f = it.frame
                 cur = self._db.execute(
                     "INSERT INTO keyframes (robot, stamp, created, gist, bow_ids, bow_counts, "
                     "data) VALUES (?, ?, ?, ?, ?, ?, ?)",
                     (
                         rid,
-                        frame.stamp,
+                        f.stamp,
                         time.time(),
-                        frame.gist.astype("<f2").tobytes(),
-                        frame.bow_ids.astype("<u4").tobytes(),
-                        frame.bow_counts.astype("<u2").tobytes(),
-                        bytes(data),
+                        f.gist.astype("<f2").tobytes(),
+                        f.bow_ids.astype("<u4").tobytes(),
+                        f.bow_counts.astype("<u2").tobytes(),
+                        it.data,
                     ),
                 )
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                if new_robot and robot_id in self._robot_ids:
-                    self._robot_names.pop(self._robot_ids.pop(robot_id), None)
-                raise
-            kf_id = int(cur.lastrowid)
-            self.index.add(kf_id, rid, frame.stamp, frame.gist, frame.bow_ids, frame.bow_counts)
-        self._queue.put(kf_id)
-        self._maybe_retrain()
-        return kf_id, True
+                it.result = (int(cur.lastrowid), True)
+                added.append(it)
+            self._db.execute("COMMIT")
+        except BaseException as exc:
+            self._db.execute("ROLLBACK")
+            for name in new_robots:
+                if name in self._robot_ids:
+                    self._robot_names.pop(self._robot_ids.pop(name), None)
+            for it in batch:
+                it.error, it.done = (
+                    exc if isinstance(exc, Exception) else Unavailable("interrupted"),
+                    True,
+                )
+            raise
+        finally:
+            for it in batch:
+                it.done = True
+        if added:
+            self.index.add_many(
+                [it.result[0] for it in added],
+                [self._robot_ids[it.robot_id] for it in added],
+                [it.frame.stamp for it in added],
+                np.stack([it.frame.gist for it in added]),
+                [it.frame.bow_ids for it in added],
+                [it.frame.bow_counts for it in added],
+            )
+            for it in added:
+                self._queue.put(it.result[0])
+            self._maybe_retrain(len(added))
 
     def frame_bytes(self, kf_id: int) -> bytes:
         """The stored encoded frame of a keyframe."""
@@ -508,9 +579,11 @@ class PlaceDB:
         mean = max(float(sizes.mean()), 1e-9)
         return mean > p.max_mean_list or sizes.max() > p.max_imbalance * mean
 
-    def _maybe_retrain(self) -> None:
+    def _maybe_retrain(self, added: int = 1) -> None:
         n = len(self.index)
-        if n % 500 == 0 and not self._retraining.locked() and self.needs_retrain():
+        if n % 500 >= added or self._retraining.locked():
+            return  # check every 500 keyframes
+        if self.needs_retrain():
             threading.Thread(target=self._retrain_quietly, daemon=True).start()
 
     def _retrain_quietly(self) -> None:

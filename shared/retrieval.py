@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 class CascadeParams:
     """Cascade settings; distances are between unit-length GIST vectors (0..2)."""
 
-    m_clusters: int = 4
+    m_clusters: int = 16
     gist_threshold: float = 0.75
     max_candidates: int = 300
     bow_threshold: float = 0.92
@@ -360,7 +360,13 @@ def local_stage(
     for c in chosen:
         other = load(c.kf_id)
         c.verification = verify_pair(
-            query.keypoints, query.descriptors, other.keypoints, other.descriptors, p.match
+            query.keypoints,
+            query.descriptors,
+            other.keypoints,
+            other.descriptors,
+            p.match,
+            _points(query),
+            _points(other),
         )
         matched += c.verification.matches >= p.match.min_matches
         if c.verification.verified:
@@ -374,6 +380,10 @@ def local_stage(
         Stage("sift_matches", matched, match_ms + load_ms),
         Stage("epipolar", len(verified), ransac_ms),
     ]
+
+
+def _points(f: Frame) -> tuple[np.ndarray, np.ndarray] | None:
+    return None if f.points is None else (f.points, f.point_valid)
 
 
 def run_cascade(

@@ -9,6 +9,9 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.frame import MAX_FRAME_BYTES
+from shared.retrieval import DEFAULT_CASCADE as _C
+
+_M = _C.match
 
 
 def default_data_dir() -> Path:
@@ -25,16 +28,18 @@ class Settings(BaseSettings):
     db_file: str = "place_db.sqlite"
     vocabulary: Path | None = None  # None: the shipped default
     max_body_bytes: int = MAX_FRAME_BYTES
-    # cascade (thesis Algorithm 3)
-    m_clusters: int = 4
-    gist_threshold: float = 0.75
-    max_candidates: int = 300
-    bow_threshold: float = 0.92
-    max_verify: int = 12
-    max_verify_per_robot: int = 4
-    ratio: float = 0.9
-    min_inliers: int = 10
-    min_inlier_ratio: float = 0.3
+    # cascade (thesis Algorithm 3); defaults from shared.retrieval / shared.matching
+    m_clusters: int = _C.m_clusters
+    gist_threshold: float = _C.gist_threshold
+    max_candidates: int = _C.max_candidates
+    bow_threshold: float = _C.bow_threshold
+    max_verify: int = _C.max_verify
+    max_verify_per_robot: int = _C.max_verify_per_robot
+    ratio: float = _M.ratio
+    min_inliers: int = _M.min_inliers
+    min_inlier_ratio: float = _M.min_inlier_ratio
+    min_inliers_3d_check: int = _M.min_inliers_3d_check
+    min_rigid_inliers: int = _M.min_rigid_inliers
     # coarse codebook upkeep
     auto_retrain: bool = True
     background_overlaps: bool = True

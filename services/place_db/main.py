@@ -27,7 +27,11 @@ def cascade_params(st: Settings) -> CascadeParams:
         max_verify=st.max_verify,
         max_verify_per_robot=st.max_verify_per_robot,
         match=MatchParams(
-            ratio=st.ratio, min_inliers=st.min_inliers, min_inlier_ratio=st.min_inlier_ratio
+            ratio=st.ratio,
+            min_inliers=st.min_inliers,
+            min_inlier_ratio=st.min_inlier_ratio,
+            min_inliers_3d_check=st.min_inliers_3d_check,
+            min_rigid_inliers=st.min_rigid_inliers,
         ),
     )
 

@@ -1,0 +1,79 @@
+"""Real service processes for end-to-end tests: `fleetmap serve` on a free loopback port."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Service:
+    def __init__(self, kind: str, data_dir: Path | None = None, env: dict | None = None):
+        self.kind, self.data_dir, self.env = kind, data_dir, env or {}
+        self.proc: subprocess.Popen | None = None
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 60.0) -> Service:
+        cmd = [sys.executable, "-m", "services.cli", "serve", self.kind, "--port", str(self.port)]
+        if self.data_dir is not None:
+            cmd += ["--data-dir", str(self.data_dir)]
+        self.proc = subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            env={**os.environ, **self.env},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"{self.kind} exited: {self.proc.stderr.read().decode()}")
+            with contextlib.suppress(httpx.TransportError):
+                if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
+                    return self
+            time.sleep(0.1)
+        raise RuntimeError(f"{self.kind} did not start within {timeout} s")
+
+    def kill(self) -> None:
+        """SIGKILL: no chance to flush or clean up."""
+        if self.proc and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+            self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+
+@contextlib.contextmanager
+def running(kind: str, data_dir: Path | None = None, url_env: str | None = None):
+    """A service URL: from the environment variable `url_env` if set (e.g. against
+    `docker compose up`), else a fresh process on a free port, stopped afterwards."""
+    if url_env and os.environ.get(url_env):
+        yield os.environ[url_env]
+        return
+    svc = Service(kind, data_dir).start()
+    try:
+        yield svc.url
+    finally:
+        svc.stop()
