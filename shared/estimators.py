@@ -1,0 +1,321 @@
+"""Transform estimators between two robots' map frames, scikit-learn style.
+
+`fit(X, Y)` learns Y ~ f(X) from matched 3D points (X in robot B's map frame, Y in robot
+A's) and returns self; `transform(X)` maps points; fitted attributes end in `_`.
+
+- `RigidEstimator`, `SimilarityEstimator`, `AffineEstimator`: closed form inside RANSAC,
+  so wrong correspondences are rejected (`inliers_`).
+- `MLPEstimator`: the thesis's network (Chapter 3): 3 inputs, one hidden layer of scaled
+  tanh 1.7159 tanh(2/3 v), 3 linear outputs, inputs and targets normalised (centring,
+  decorrelation, covariance equalisation), full-batch Levenberg-Marquardt training with
+  Matlab trainlm's stopping rules (error goal, max epochs, 6 validation failures).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+
+from shared.errors import BadInput, NotEnoughCorrespondences
+from shared.registration import kabsch
+
+log = logging.getLogger(__name__)
+
+
+def _check_xy(X: np.ndarray, Y: np.ndarray, minimum: int) -> tuple[np.ndarray, np.ndarray]:
+    X, Y = np.asarray(X, np.float64), np.asarray(Y, np.float64)
+    if X.ndim != 2 or X.shape[1] != 3 or X.shape != Y.shape:
+        raise BadInput(f"Expected X and Y of shape (N, 3), got {X.shape} and {Y.shape}")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(Y))):
+        raise BadInput("Correspondences have non-finite values")
+    if len(X) < minimum:
+        raise NotEnoughCorrespondences(f"Need at least {minimum} correspondences, got {len(X)}")
+    if (
+        np.linalg.matrix_rank(X - X.mean(0), tol=1e-9 * max(1.0, np.abs(X).max())) < 3
+        and minimum >= 4
+    ):
+        raise BadInput("Degenerate correspondences: the points are coplanar or collinear")
+    return X, Y
+
+
+def fit_affine(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Least-squares affine 4x4 with Y ~ A X + t."""
+    Xh = np.hstack([X, np.ones((len(X), 1))])
+    M, *_ = np.linalg.lstsq(Xh, Y, rcond=None)
+    T = np.eye(4)
+    T[:3, :] = M.T
+    return T
+
+
+class _ClosedForm:
+    """Closed-form model in RANSAC: minimal samples, inliers by distance, LS refit."""
+
+    sample_size = 3
+    min_points = 3
+
+    def __init__(
+        self, threshold: float | None = None, max_trials: int = 2000, random_state: int = 0
+    ):
+        self.threshold = threshold
+        self.max_trials = max_trials
+        self.random_state = random_state
+
+    def _fit(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def fit(self, X: np.ndarray, Y: np.ndarray):
+        X, Y = _check_xy(X, Y, self.min_points)
+        t0 = time.perf_counter()
+        thr = self.threshold
+        if thr is None:  # robust default: from the spread of a first all-points fit
+            r = np.linalg.norm(self._apply(self._fit(X, Y), X) - Y, axis=1)
+            thr = max(3.0 * 1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-9)
+        rng = np.random.default_rng(self.random_state)
+        best = np.zeros(len(X), bool)
+        trials = self.max_trials if len(X) > self.sample_size else 1
+        for _ in range(trials):
+            idx = rng.choice(len(X), self.sample_size, replace=False)
+            try:
+                T = self._fit(X[idx], Y[idx])
+            except (np.linalg.LinAlgError, BadInput, NotEnoughCorrespondences):
+                continue
+            inl = np.linalg.norm(self._apply(T, X) - Y, axis=1) < thr
+            if inl.sum() > best.sum():
+                best = inl
+                if best.mean() > 0.99:
+                    break
+        if best.sum() < self.min_points:
+            raise NotEnoughCorrespondences(f"RANSAC found {int(best.sum())} inliers")
+        T = self._fit(X[best], Y[best])
+        inl = np.linalg.norm(self._apply(T, X) - Y, axis=1) < thr
+        if inl.sum() >= best.sum():
+            best, T = inl, self._fit(X[inl], Y[inl])
+        self.T_, self.inliers_, self.threshold_ = T, best, thr
+        self.fit_seconds_ = time.perf_counter() - t0
+        return self
+
+    @staticmethod
+    def _apply(T: np.ndarray, X: np.ndarray) -> np.ndarray:
+        return X @ T[:3, :3].T + T[:3, 3]
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        """Map points of shape (N, 3) from B's frame into A's."""
+        return self._apply(self.T_, np.asarray(X, np.float64))
+
+    predict = transform
+
+    @property
+    def affine_(self) -> np.ndarray:
+        return self.T_
+
+
+class RigidEstimator(_ClosedForm):
+    """Rotation and translation (Kabsch) in RANSAC."""
+
+    def _fit(self, X, Y):
+        return kabsch(X, Y)
+
+
+class SimilarityEstimator(_ClosedForm):
+    """Rotation, translation and one scale (Umeyama) in RANSAC."""
+
+    def _fit(self, X, Y):
+        return kabsch(X, Y, scale=True)
+
+
+class AffineEstimator(_ClosedForm):
+    """General affine map (least squares) in RANSAC."""
+
+    sample_size = 4
+    min_points = 4
+
+    def _fit(self, X, Y):
+        return fit_affine(X, Y)
+
+
+class _Whitener:
+    """Centring, decorrelation (PCA) and covariance equalisation (LeCun's recipe)."""
+
+    def fit(self, X: np.ndarray) -> _Whitener:
+        self.mean_ = X.mean(0)
+        C = np.cov((X - self.mean_).T) + 1e-12 * np.eye(X.shape[1])
+        w, V = np.linalg.eigh(C)
+        w = np.maximum(w, 1e-12 * w.max())
+        self.W_ = V / np.sqrt(w)  # columns scaled: unit variance along each axis
+        self.Winv_ = (V * np.sqrt(w)).T
+        return self
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        return (X - self.mean_) @ self.W_
+
+    def inverse(self, Z: np.ndarray) -> np.ndarray:
+        return Z @ self.Winv_ + self.mean_
+
+
+class MLPEstimator:
+    """The thesis's MLP: 3 -> hidden (scaled tanh) -> 3 linear, trained by LM.
+
+    Parameters
+    ----------
+    hidden : hidden units (thesis: 20).
+    max_epochs, goal, max_fail, min_grad, mu : Matlab trainlm's stopping rules and
+        damping (defaults 1000, 0, 6, 1e-7, 1e-3).
+    val_fraction : held-out share for the validation-failure rule.
+    optimizer : "lm" (Levenberg-Marquardt) or "adam" (first order, for comparison).
+    """
+
+    A, B = 1.7159, 2.0 / 3.0
+
+    def __init__(
+        self,
+        hidden: int = 20,
+        max_epochs: int = 1000,
+        goal: float = 0.0,
+        max_fail: int = 6,
+        min_grad: float = 1e-7,
+        mu: float = 1e-3,
+        val_fraction: float = 0.15,
+        optimizer: str = "lm",
+        random_state: int = 0,
+    ):
+        self.hidden, self.max_epochs, self.goal = hidden, max_epochs, goal
+        self.max_fail, self.min_grad, self.mu = max_fail, min_grad, mu
+        self.val_fraction, self.optimizer, self.random_state = val_fraction, optimizer, random_state
+
+    def _forward(self, theta: torch.Tensor, Z: torch.Tensor) -> torch.Tensor:
+        h = self.hidden
+        W1 = theta[: 3 * h].reshape(h, 3)
+        b1 = theta[3 * h : 4 * h]
+        W2 = theta[4 * h : 7 * h].reshape(3, h)
+        b2 = theta[7 * h : 7 * h + 3]
+        return (self.A * torch.tanh(self.B * (Z @ W1.T + b1))) @ W2.T + b2
+
+    def _jacobian(self, theta: torch.Tensor, Z: torch.Tensor) -> torch.Tensor:
+        """Analytic Jacobian of the flattened outputs (N*3,) w.r.t. theta: shape (N*3, P)."""
+        h, n = self.hidden, len(Z)
+        W1 = theta[: 3 * h].reshape(h, 3)
+        b1 = theta[3 * h : 4 * h]
+        W2 = theta[4 * h : 7 * h].reshape(3, h)
+        t = torch.tanh(self.B * (Z @ W1.T + b1))  # (N, h)
+        a = self.A * t
+        da = self.A * self.B * (1 - t * t)  # d a / d z, (N, h)
+        J = torch.zeros(n, 3, len(theta), dtype=theta.dtype)
+        g = W2[None, :, :] * da[:, None, :]  # d out_k / d z_j: (N, 3, h)
+        J[:, :, : 3 * h] = (g[:, :, :, None] * Z[:, None, None, :]).reshape(n, 3, 3 * h)
+        J[:, :, 3 * h : 4 * h] = g
+        for k in range(3):
+            J[:, k, 4 * h + k * h : 4 * h + (k + 1) * h] = a
+            J[:, k, 7 * h + k] = 1.0
+        return J.reshape(n * 3, -1)
+
+    def _init(self, gen: torch.Generator) -> torch.Tensor:
+        h = self.hidden
+        # LeCun initialisation: weights ~ N(0, 1/fan_in)
+        W1 = torch.randn(h, 3, generator=gen, dtype=torch.float64) / np.sqrt(3)
+        W2 = torch.randn(3, h, generator=gen, dtype=torch.float64) / np.sqrt(h)
+        return torch.cat(
+            [
+                W1.ravel(),
+                torch.zeros(h, dtype=torch.float64),
+                W2.ravel(),
+                torch.zeros(3, dtype=torch.float64),
+            ]
+        )
+
+    def fit(self, X: np.ndarray, Y: np.ndarray) -> MLPEstimator:
+        X, Y = _check_xy(X, Y, 10)
+        t0 = time.perf_counter()
+        self.x_norm_ = _Whitener().fit(X)
+        self.y_norm_ = _Whitener().fit(Y)
+        Zx = torch.from_numpy(self.x_norm_.transform(X))
+        Zy = torch.from_numpy(self.y_norm_.transform(Y))
+        rng = np.random.default_rng(self.random_state)
+        perm = rng.permutation(len(X))
+        n_val = int(round(self.val_fraction * len(X))) if len(X) >= 20 else 0
+        val, tr = perm[:n_val], perm[n_val:]
+        gen = torch.Generator().manual_seed(self.random_state)
+        theta = self._init(gen)
+        train = self._train_lm if self.optimizer == "lm" else self._train_adam
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # ~150 weights: thread start-up costs more than it saves
+        try:
+            theta, self.n_epochs_, self.stop_reason_ = train(
+                theta, Zx[tr], Zy[tr], Zx[val], Zy[val]
+            )
+        finally:
+            torch.set_num_threads(threads)
+        self.theta_ = theta
+        self.fit_seconds_ = time.perf_counter() - t0
+        self.affine_ = fit_affine(X, self.transform(X))
+        return self
+
+    def _mse(self, theta, Zx, Zy) -> float:
+        return float(((self._forward(theta, Zx) - Zy) ** 2).mean()) if len(Zx) else 0.0
+
+    def _train_lm(self, theta, Zx, Zy, Vx, Vy):
+        mu, best_val, fails = self.mu, np.inf, 0
+        best_theta = theta.clone()
+        eye = torch.eye(len(theta), dtype=torch.float64)
+
+        def residual(t):
+            return (self._forward(t, Zx) - Zy).reshape(-1)
+
+        for epoch in range(1, self.max_epochs + 1):
+            e = residual(theta)
+            sse = float(e @ e)
+            if sse / len(e) <= self.goal:
+                return theta, epoch, "goal"
+            J = self._jacobian(theta, Zx)
+            JtJ, g = J.T @ J, J.T @ e
+            if float(g.abs().max()) < self.min_grad:
+                return theta, epoch, "min_grad"
+            while True:
+                step = torch.linalg.solve(JtJ + mu * eye, g)
+                cand = theta - step
+                e2 = residual(cand)
+                if float(e2 @ e2) < sse:
+                    theta, mu = cand, max(mu * 0.1, 1e-20)
+                    break
+                mu *= 10.0
+                if mu > 1e10:
+                    return theta, epoch, "max_mu"
+            if len(Vx):
+                v = self._mse(theta, Vx, Vy)
+                if v < best_val:
+                    best_val, best_theta, fails = v, theta.clone(), 0
+                else:
+                    fails += 1
+                    if fails >= self.max_fail:
+                        return best_theta, epoch, "validation"
+        return theta, self.max_epochs, "max_epochs"
+
+    def _train_adam(self, theta, Zx, Zy, Vx, Vy):
+        theta = theta.clone().requires_grad_(True)
+        opt = torch.optim.Adam([theta], lr=1e-2)
+        best_val, best_theta, fails = np.inf, theta.detach().clone(), 0
+        for epoch in range(1, self.max_epochs + 1):
+            opt.zero_grad()
+            loss = ((self._forward(theta, Zx) - Zy) ** 2).mean()
+            loss.backward()
+            opt.step()
+            if len(Vx) and epoch % 10 == 0:
+                v = self._mse(theta.detach(), Vx, Vy)
+                if v < best_val:
+                    best_val, best_theta, fails = v, theta.detach().clone(), 0
+                else:
+                    fails += 1
+                    if fails >= self.max_fail:
+                        return best_theta, epoch, "validation"
+        return theta.detach(), self.max_epochs, "max_epochs"
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        """Map points of shape (N, 3) from B's frame into A's."""
+        Z = torch.from_numpy(self.x_norm_.transform(np.asarray(X, np.float64)))
+        with torch.no_grad():
+            out = self._forward(self.theta_, Z).numpy()
+        return self.y_norm_.inverse(out)
+
+    predict = transform
