@@ -23,7 +23,7 @@ class MatchParams:
     min_matches: int = 9
     ransac_px: float = 2.0
     confidence: float = 0.999
-    min_inliers: int = 15
+    min_inliers: int = 20
     min_inlier_ratio: float = 0.3
     # With depth on both sides: fewer epipolar inliers suffice when enough of them also
     # agree with one rigid motion of their 3D points (a test random matches fail).

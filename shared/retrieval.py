@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 class CascadeParams:
     """Cascade settings; distances are between unit-length GIST vectors (0..2)."""
 
-    m_clusters: int = 16
+    m_clusters: int = 64
     gist_threshold: float = 0.75
     max_candidates: int = 300
     bow_threshold: float = 0.92
@@ -306,24 +306,25 @@ class PlaceIndex:
         self, q_ids: np.ndarray, q_counts: np.ndarray, flt: Filter, k: int
     ) -> list[Candidate]:
         """Baseline: the query's BoW scored against every stored keyframe (the thesis's
-        visual-similarity-matrix method); the k best as candidates."""
+        visual-similarity-matrix method, vectorised), then the filter; the k best."""
         with self._lock:
-            keep = self.alive.view.copy()
-            robots, stamps = self.robots.view, self.stamps.view
+            slots = np.flatnonzero(self.alive.view)
+            d = self._bow_by_slot(q_ids, q_counts, slots)
+            robots, stamps = self.robots.view[slots], self.stamps.view[slots]
+            keep = np.ones(len(slots), bool)
             if flt.robots is not None:
                 keep &= np.isin(robots, list(flt.robots))
             if flt.exclude_robots:
                 keep &= ~np.isin(robots, list(flt.exclude_robots))
             if flt.max_stamp is not None:
                 keep &= stamps < flt.max_stamp
-            slots = np.flatnonzero(keep)
-            d = self._bow_by_slot(q_ids, q_counts, slots)
-            best = np.argsort(d, kind="stable")[:k]
+            idx = np.flatnonzero(keep)
+            best = idx[np.argsort(d[idx], kind="stable")[:k]]
             return [
                 Candidate(
                     int(self.ids.view[slots[i]]),
-                    int(robots[slots[i]]),
-                    float(stamps[slots[i]]),
+                    int(robots[i]),
+                    float(stamps[i]),
                     float("nan"),
                     float(d[i]),
                 )
