@@ -109,3 +109,42 @@ class PlaceDBClient(_Client):
 
     def stats(self) -> dict:
         return self._call("GET", "/stats").json()
+
+
+def _png(img) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise BadInput("Cannot encode image as PNG")
+    return buf.tobytes()
+
+
+class AlignerClient(_Client):
+    """Client of the aligner service."""
+
+    def align(
+        self, pairs, method: str = "default", cloud: bool = False, colour: str = "robot"
+    ) -> dict:
+        """pairs: list of (RGBDView of robot A, RGBDView of robot B)."""
+        import json
+
+        meta = {"pairs": [], "method": method, "cloud": cloud, "colour": colour}
+        files = []
+        for i, (a, b) in enumerate(pairs):
+            item = {}
+            for side, v in (("a", a), ("b", b)):
+                item[side] = {
+                    "stamp": v.stamp,
+                    "T_map_cam": v.T_map_cam.tolist(),
+                    "intrinsics": v.intrinsics.to_dict(),
+                }
+                files.append((f"{side}{i}_rgb", (f"{side}{i}_rgb.png", _png(v.rgb), "image/png")))
+                files.append(
+                    (f"{side}{i}_depth", (f"{side}{i}_depth.png", _png(v.depth), "image/png"))
+                )
+            meta["pairs"].append(item)
+        return self._call("POST", "/align", data={"meta": json.dumps(meta)}, files=files).json()
+
+    def cloud(self, cloud_id: str) -> bytes:
+        return self._call("GET", f"/clouds/{cloud_id}").content

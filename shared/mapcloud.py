@@ -72,3 +72,14 @@ def write_ply(path, points: np.ndarray, colors: np.ndarray | None = None) -> Non
     if colors is not None:
         pc.colors = o3d.utility.Vector3dVector(np.asarray(colors, np.float64))
     o3d.io.write_point_cloud(str(path), pc, write_ascii=False)
+
+
+def ply_bytes(points: np.ndarray, colors: np.ndarray | None = None) -> bytes:
+    """Binary PLY file contents of points (N, 3) and optional colours (N, 3) in 0..1."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "cloud.ply"
+        write_ply(path, points, colors)
+        return path.read_bytes()

@@ -1,0 +1,34 @@
+"""Aligner settings, from FLEETMAP_ALIGNER_* environment variables or a .env file."""
+
+from __future__ import annotations
+
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from shared.align import AlignParams
+
+_P = AlignParams()
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(
+        env_prefix="FLEETMAP_ALIGNER_", env_file=".env", extra="ignore"
+    )
+
+    max_body_bytes: int = 256 * 1024 * 1024
+    max_pairs: int = 32
+    max_image_pixels: int = 4096 * 4096
+    cloud_cache: int = 8  # merged clouds kept for GET /clouds/{id}
+    ransac_tol_m: float = _P.ransac_tol_m
+    min_inliers: int = _P.min_inliers
+    min_spread_m: float = _P.min_spread_m
+    max_holdout_m: float = _P.max_holdout_m
+    voxel_m: float = _P.voxel_m
+
+    def params(self) -> AlignParams:
+        return AlignParams(
+            ransac_tol_m=self.ransac_tol_m,
+            min_inliers=self.min_inliers,
+            min_spread_m=self.min_spread_m,
+            max_holdout_m=self.max_holdout_m,
+            voxel_m=self.voxel_m,
+        )

@@ -1,0 +1,36 @@
+"""Aligner app factory: settings, error handling, the merged-cloud cache."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from services import common
+from services.aligner.config import Settings
+from services.aligner.routes import router
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        import open3d  # noqa: F401  heavy import at start-up, not on the first request
+        import torch  # noqa: F401
+
+        app.state.clouds = OrderedDict()
+        yield
+        app.state.clouds.clear()
+
+    app = FastAPI(
+        title="fleetmap aligner",
+        version="0.1.0",
+        lifespan=lifespan,
+        description="Fits the transform between two robots' maps from RGB-D pairs.",
+    )
+    app.state.settings = settings
+    common.install(app)
+    app.include_router(router)
+    return app
