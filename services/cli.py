@@ -216,6 +216,62 @@ def cmd_overlaps(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_align(args: argparse.Namespace) -> int:
+    """Align robot B's map to robot A's from their verified overlaps."""
+    import json
+
+    from shared.client import AlignerClient, PlaceDBClient
+    from shared.dataset import parse_robot_arg, read_recording
+    from shared.pairs import load_view, select_pairs
+
+    recs = []
+    for arg in (args.robot_a, args.robot_b):
+        name, robot_dir = parse_robot_arg(arg)
+        recs.append(
+            read_recording(
+                robot_dir,
+                name,
+                _intrinsics(args, robot_dir),
+                require_depth=True,
+                require_poses=True,
+            )
+        )
+    rec_a, rec_b = recs
+    with PlaceDBClient(args.place_db) as db:
+        overlaps = db.overlaps(rec_a.robot_id, rec_b.robot_id, wait=args.wait)
+    pairs = select_pairs(overlaps, rec_a, rec_b, max_pairs=args.max_pairs)
+    if not pairs:
+        out = {
+            "merged": False,
+            "reason": f"no verified overlap between {rec_a.robot_id} and {rec_b.robot_id}",
+        }
+    else:
+        views = [(load_view(rec_a, i), load_view(rec_b, j)) for i, j in pairs]
+        with AlignerClient(args.aligner, timeout=600) as aligner:
+            res = aligner.align(views, method=args.method)
+        out = {
+            "merged": res["merged"],
+            "robot_a": rec_a.robot_id,
+            "robot_b": rec_b.robot_id,
+            "pairs": len(views),
+            **res,
+        }
+        if not res["merged"]:
+            out.pop("transform", None)
+    if args.json:
+        print(json.dumps(out, indent=2))
+    elif out["merged"]:
+        print(
+            f"merged {rec_b.robot_id} into {rec_a.robot_id} ({out['method']}, "
+            f"{out['inliers']} inliers, held-out {out['holdout_residual_m']:.3f} m):"
+        )
+        for row in out["transform"]:
+            print("  " + " ".join(f"{v:10.5f}" for v in row))
+    else:
+        print(f"not merged: {out['reason']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
@@ -269,6 +325,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="seconds to wait for queued overlap detection (default 120)",
     )
     p.set_defaults(func=cmd_overlaps)
+
+    p = sub.add_parser("align", help="fit robot B's map frame into robot A's")
+    p.add_argument("robot_a", metavar="[NAME=]ROBOT_DIR_A")
+    p.add_argument("robot_b", metavar="[NAME=]ROBOT_DIR_B")
+    p.add_argument("--place-db", required=True, metavar="URL")
+    p.add_argument("--aligner", required=True, metavar="URL")
+    p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--method",
+        default="default",
+        choices=["default", "rigid", "similarity", "affine", "mlp", "icp"],
+    )
+    p.add_argument("--max-pairs", type=int, default=8)
+    p.add_argument("--wait", type=float, default=120.0)
+    _add_camera_args(p)
+    p.set_defaults(func=cmd_align)
     return parser
 
 

@@ -77,3 +77,44 @@ def imread(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert img is not None, path
     return img
+
+
+def write_robot(root: Path, frames: list[tuple[float, Path, Path, np.ndarray]],
+                camera: dict | None = None) -> Path:
+    """A robot folder in the TUM layout from (stamp, rgb file, depth file, T_map_cam)."""
+    from shared.geometry import pose_to_tum
+
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rgb, depth, gt = [], [], []
+    for stamp, rgb_src, depth_src, T in frames:
+        shutil.copy(rgb_src, root / "rgb" / f"{stamp:.6f}.png")
+        shutil.copy(depth_src, root / "depth" / f"{stamp:.6f}.png")
+        rgb.append(f"{stamp:.6f} rgb/{stamp:.6f}.png")
+        depth.append(f"{stamp:.6f} depth/{stamp:.6f}.png")
+        gt.append(f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in pose_to_tum(T)))
+    (root / "rgb.txt").write_text("\n".join(rgb) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth) + "\n")
+    (root / "groundtruth.txt").write_text("\n".join(gt) + "\n")
+    if camera is not None:
+        import json
+
+        (root / "camera.json").write_text(json.dumps(camera))
+    return root
+
+
+@pytest.fixture
+def tum_robot_dirs(tum_pairs: Path, tmp_path: Path):
+    """Two one-frame robots from TUM fr1 case_1; B's map frame is a random rigid one.
+    Returns (dir A, dir B, T_a_b)."""
+    from scipy.spatial.transform import Rotation
+
+    case = tum_pairs / "case_1"
+    T_b_w = np.eye(4)
+    T_b_w[:3, :3] = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
+    T_b_w[:3, 3] = [4.0, -2.5, 1.2]
+    a = write_robot(tmp_path / "alpha", [(100.0, case / "img_prev.png", case / "dep_prev.png",
+                                          read_tum_pose(case / "pose_prev.txt"))])
+    b = write_robot(tmp_path / "bravo", [(200.0, case / "img_curr.png", case / "dep_curr.png",
+                                          T_b_w @ read_tum_pose(case / "pose_curr.txt"))])
+    return a, b, np.linalg.inv(T_b_w)
