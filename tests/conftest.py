@@ -79,8 +79,9 @@ def imread(path: Path) -> np.ndarray:
     return img
 
 
-def write_robot(root: Path, frames: list[tuple[float, Path, Path, np.ndarray]],
-                camera: dict | None = None) -> Path:
+def write_robot(
+    root: Path, frames: list[tuple[float, Path, Path, np.ndarray]], camera: dict | None = None
+) -> Path:
     """A robot folder in the TUM layout from (stamp, rgb file, depth file, T_map_cam)."""
     from shared.geometry import pose_to_tum
 
@@ -113,8 +114,26 @@ def tum_robot_dirs(tum_pairs: Path, tmp_path: Path):
     T_b_w = np.eye(4)
     T_b_w[:3, :3] = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
     T_b_w[:3, 3] = [4.0, -2.5, 1.2]
-    a = write_robot(tmp_path / "alpha", [(100.0, case / "img_prev.png", case / "dep_prev.png",
-                                          read_tum_pose(case / "pose_prev.txt"))])
-    b = write_robot(tmp_path / "bravo", [(200.0, case / "img_curr.png", case / "dep_curr.png",
-                                          T_b_w @ read_tum_pose(case / "pose_curr.txt"))])
+    a = write_robot(
+        tmp_path / "alpha",
+        [
+            (
+                100.0,
+                case / "img_prev.png",
+                case / "dep_prev.png",
+                read_tum_pose(case / "pose_prev.txt"),
+            )
+        ],
+    )
+    b = write_robot(
+        tmp_path / "bravo",
+        [
+            (
+                200.0,
+                case / "img_curr.png",
+                case / "dep_curr.png",
+                T_b_w @ read_tum_pose(case / "pose_curr.txt"),
+            )
+        ],
+    )
     return a, b, np.linalg.inv(T_b_w)

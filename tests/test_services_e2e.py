@@ -3,18 +3,22 @@
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 from services.cli import main
 from shared.geometry import transform_error
+from tests.conftest import write_robot
 from tests.servers import running
 
 
 @pytest.fixture(scope="module")
 def services(tmp_path_factory):
-    with running("place-db", tmp_path_factory.mktemp("db"), "PLACE_DB_URL") as db, \
-            running("aligner", url_env="ALIGNER_URL") as al:
+    with (
+        running("place-db", tmp_path_factory.mktemp("db"), "PLACE_DB_URL") as db,
+        running("aligner", url_env="ALIGNER_URL") as al,
+    ):
         yield db, al
 
 
@@ -26,8 +30,7 @@ def test_ingest_overlaps_align_recovers_the_known_transform(services, tum_robot_
     assert main(["overlaps", "alpha", "bravo", "--place-db", db, "--json"]) == 0
     pairs = json.loads(capsys.readouterr().out)["overlaps"]
     assert len(pairs) == 1 and pairs[0]["stamp_a"] == 100.0 and pairs[0]["inliers"] >= 50
-    assert main(["align", str(dir_a), str(dir_b), "--place-db", db, "--aligner", al,
-                 "--json"]) == 0
+    assert main(["align", str(dir_a), str(dir_b), "--place-db", db, "--aligner", al, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["merged"], out
     dt, dr = transform_error(np.array(out["transform"]), T_a_b)
@@ -37,11 +40,7 @@ def test_ingest_overlaps_align_recovers_the_known_transform(services, tum_robot_
 def test_align_without_overlap_is_not_merged(services, tum_robot_dirs, tmp_path, capsys):
     db, al = services
     dir_a, _, _ = tum_robot_dirs
-    from tests.conftest import write_robot
-
     # a robot that saw only a blank wall: no overlap with anyone
-    import cv2
-
     blank = tmp_path / "blank.png"
     cv2.imwrite(str(blank), np.full((480, 640, 3), 128, np.uint8))
     depth = tmp_path / "depth.png"
@@ -49,7 +48,6 @@ def test_align_without_overlap_is_not_merged(services, tum_robot_dirs, tmp_path,
     wall = write_robot(tmp_path / "wall", [(300.0, blank, depth, np.eye(4))])
     assert main(["ingest", str(dir_a), str(wall), "--place-db", db]) == 0
     capsys.readouterr()
-    assert main(["align", str(dir_a), str(wall), "--place-db", db, "--aligner", al,
-                 "--json"]) == 0
+    assert main(["align", str(dir_a), str(wall), "--place-db", db, "--aligner", al, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out == {"merged": False, "reason": "no verified overlap between alpha and wall"}
