@@ -272,6 +272,42 @@ def cmd_align(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_merge(args: argparse.Namespace) -> int:
+    """The main job: N robot folders in, one global map and report out."""
+    from services.merge import run_merge
+    from shared.dataset import parse_robot_arg, read_recording
+    from shared.errors import BadInput
+
+    recs = []
+    for arg in args.robots:
+        name, robot_dir = parse_robot_arg(arg)
+        recs.append(
+            read_recording(
+                robot_dir,
+                name,
+                _intrinsics(args, robot_dir),
+                require_depth=True,
+                require_poses=True,
+            )
+        )
+    ids = [r.robot_id for r in recs]
+    if len(set(ids)) != len(ids):
+        raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
+    out = Path(args.out)
+    report = run_merge(
+        recs, out, _policy(args), args.vocab, args.place_db, args.aligner, max_pairs=args.max_pairs
+    )
+    merged = [r for r in ids if r not in report["unmerged"]]
+    print(
+        f"merged {len(merged)} of {len(ids)} robots into {report['reference']}'s frame "
+        f"({len(report['overlaps'])} verified overlaps, {report['timing_s']['total']:.1f} s)"
+    )
+    if report["unmerged"]:
+        print(f"unmerged (no trustworthy overlap): {', '.join(report['unmerged'])}")
+    print(f"results: {out / 'report.json'}, {out / 'merged.ply'}, {out / 'overview.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
@@ -341,6 +377,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait", type=float, default=120.0)
     _add_camera_args(p)
     p.set_defaults(func=cmd_align)
+
+    p = sub.add_parser("merge", help="the main job: merge N robots' maps into one")
+    p.add_argument("robots", nargs="+", metavar="[NAME=]ROBOT_DIR")
+    p.add_argument("--out", required=True, metavar="OUT_DIR")
+    p.add_argument("--place-db", metavar="URL", help="default: start one in-process")
+    p.add_argument("--aligner", metavar="URL", help="default: start one in-process")
+    p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
+    p.add_argument("--max-pairs", type=int, default=8)
+    _add_camera_args(p)
+    _add_keyframe_args(p)
+    p.set_defaults(func=cmd_merge)
     return parser
 
 

@@ -1,0 +1,259 @@
+"""`fleetmap merge`: the main job, from N robot folders to one global map.
+
+Extract and ingest every robot's keyframes into the place database, ask it for the
+verified overlaps of every robot pair, align each overlapping pair with the aligner, then
+place every robot in the reference robot's frame through the most trustworthy chain of
+pairwise fits (a maximum spanning tree of the overlap graph weighted by inliers). A robot
+with no trustworthy link is listed as unmerged, never placed on a guess.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from shared.client import AlignerClient, PlaceDBClient
+from shared.dataset import Recording
+from shared.extract import FrameExtractor, keyframe_indices
+from shared.geometry import pose_to_tum
+from shared.pairs import load_view, select_pairs
+
+log = logging.getLogger(__name__)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def embedded_service(kind: str, data_dir: Path | None = None):
+    """A service on a free loopback port in a background thread; yields its URL."""
+    import uvicorn
+
+    if kind == "place-db":
+        from services.place_db.config import Settings
+        from services.place_db.main import create_app
+
+        app = create_app(Settings(data_dir=data_dir) if data_dir else Settings())
+    else:
+        from services.aligner.main import create_app as create_aligner
+
+        app = create_aligner()
+    port = _free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, name=f"embedded-{kind}", daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}"
+    client = PlaceDBClient(url)
+    try:
+        client.wait_ready(60)
+        yield url
+    finally:
+        client.close()
+        server.should_exit = True
+        thread.join(30)
+
+
+def spanning_placement(
+    robots: list[str], edges: dict[tuple[str, str], dict]
+) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """T_ref_robot for every robot reachable from robots[0] through merged edges, choosing
+    the strongest links first (Prim's maximum spanning tree on inliers).
+
+    edges[(a, b)] holds {"T_a_b": 4x4, "inliers": int}; returns transforms and the chain
+    of robots each placement went through."""
+    ref = robots[0]
+    placed = {ref: np.eye(4)}
+    chain = {ref: [ref]}
+    while True:
+        best = None
+        for (a, b), e in edges.items():
+            for src, dst, T in ((a, b, e["T_a_b"]), (b, a, np.linalg.inv(e["T_a_b"]))):
+                if src in placed and dst not in placed and (best is None or e["inliers"] > best[0]):
+                    best = (e["inliers"], src, dst, T)
+        if best is None:
+            return placed, chain
+        _, src, dst, T = best
+        placed[dst] = placed[src] @ T
+        chain[dst] = chain[src] + [dst]
+
+
+def run_merge(
+    recs: list[Recording],
+    out: Path,
+    policy,
+    vocab_path=None,
+    place_db: str | None = None,
+    aligner: str | None = None,
+    max_pairs: int = 8,
+    voxel: float = 0.03,
+    quiet: bool = False,
+) -> dict:
+    """The whole job; writes OUT/report.json, merged.ply, trajectories/, overview.png."""
+    out.mkdir(parents=True, exist_ok=True)
+    timing = {"extract": 0.0, "ingest": 0.0, "overlaps": 0.0, "align": 0.0}
+    t_all = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        if place_db is None:
+            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
+            place_db = stack.enter_context(embedded_service("place-db", tmp))
+        if aligner is None:
+            aligner = stack.enter_context(embedded_service("aligner"))
+        db = stack.enter_context(PlaceDBClient(place_db))
+        al = stack.enter_context(AlignerClient(aligner, timeout=900))
+        from services.cli import _checked_vocabulary
+
+        vocab = _checked_vocabulary(db, vocab_path)
+        extractor = FrameExtractor(vocab)
+        kf_index = {}
+        for rec in recs:
+            idx = keyframe_indices(rec, policy)
+            kf_index[rec.robot_id] = idx
+            for i in tqdm(idx, desc=f"ingest {rec.robot_id}", unit="kf", disable=quiet):
+                t = time.perf_counter()
+                view = load_view(rec, i)
+                frame = extractor(
+                    rec.robot_id, view.stamp, view.rgb, view.depth, view.intrinsics, view.T_map_cam
+                )
+                t2 = time.perf_counter()
+                db.add_keyframe(frame)
+                timing["extract"] += t2 - t
+                timing["ingest"] += time.perf_counter() - t2
+        t = time.perf_counter()
+        overlaps, by_pair = [], {}
+        for i, ra in enumerate(recs):
+            for rb in recs[i + 1 :]:
+                pairs = db.overlaps(ra.robot_id, rb.robot_id, wait=600)
+                by_pair[(ra.robot_id, rb.robot_id)] = pairs
+                overlaps += [
+                    {
+                        "robot_a": p["robot_a"],
+                        "stamp_a": p["stamp_a"],
+                        "robot_b": p["robot_b"],
+                        "stamp_b": p["stamp_b"],
+                        "inliers": p["inliers"],
+                    }
+                    for p in pairs
+                ]
+        timing["overlaps"] = time.perf_counter() - t
+        t = time.perf_counter()
+        edges, fits = {}, []
+        recs_by_id = {r.robot_id: r for r in recs}
+        for (a, b), pairs in tqdm(by_pair.items(), desc="align", unit="pair", disable=quiet):
+            sel = select_pairs(pairs, recs_by_id[a], recs_by_id[b], max_pairs=max_pairs)
+            if not sel:
+                continue
+            views = [(load_view(recs_by_id[a], i), load_view(recs_by_id[b], j)) for i, j in sel]
+            res = al.align(views)
+            fits.append(
+                {
+                    "robot_a": a,
+                    "robot_b": b,
+                    "pairs": len(views),
+                    **{k: v for k, v in res.items() if k != "hypotheses"},
+                }
+            )
+            if res["merged"]:
+                edges[(a, b)] = {"T_a_b": np.array(res["transform"]), "inliers": res["inliers"]}
+        timing["align"] = time.perf_counter() - t
+    ids = [r.robot_id for r in recs]
+    placed, chain = spanning_placement(ids, edges)
+    report = {
+        "reference": ids[0],
+        "robots": {
+            r.robot_id: {
+                "keyframes": len(kf_index[r.robot_id]),
+                "frames": len(r),
+                "chain": chain.get(r.robot_id),
+            }
+            for r in recs
+        },
+        "transforms": {r: placed[r].tolist() for r in ids if r in placed},
+        "overlaps": overlaps,
+        "fits": fits,
+        "unmerged": [r for r in ids if r not in placed],
+    }
+    _write_outputs(out, recs, kf_index, placed, report, voxel)
+    timing["total"] = time.perf_counter() - t_all
+    report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> None:
+    from shared.align import ROBOT_COLOURS
+    from shared.geometry import apply
+    from shared.mapcloud import views_cloud, write_ply
+
+    pts, cols = [], []
+    (out / "trajectories").mkdir(exist_ok=True)
+    tracks = {}
+    for k, rec in enumerate(recs):
+        if rec.robot_id not in placed:
+            continue
+        T = placed[rec.robot_id]
+        views = [load_view(rec, i) for i in kf_index[rec.robot_id]]
+        cloud = views_cloud(views, voxel=voxel, with_color=False)
+        p = apply(T, np.asarray(cloud.points))
+        pts.append(p)
+        cols.append(np.tile(ROBOT_COLOURS[k % len(ROBOT_COLOURS)], (len(p), 1)))
+        poses = [T @ v.T_map_cam for v in views]
+        tracks[rec.robot_id] = np.array([P[:3, 3] for P in poses])
+        lines = [f"# timestamp tx ty tz qx qy qz qw (global frame = {report['reference']}'s map)"]
+        lines += [
+            f"{v.stamp:.6f} " + " ".join(f"{x:.6f}" for x in pose_to_tum(P))
+            for v, P in zip(views, poses, strict=True)
+        ]
+        (out / "trajectories" / f"{rec.robot_id}.txt").write_text("\n".join(lines) + "\n")
+    if pts:
+        write_ply(out / "merged.ply", np.concatenate(pts), np.concatenate(cols))
+        _overview(
+            out / "overview.png",
+            pts,
+            tracks,
+            [r.robot_id for r in recs if r.robot_id in placed],
+            report,
+        )
+
+
+def _overview(path: Path, pts, tracks, names, report) -> None:
+    """Top-down picture: map points per robot, trajectories, overlap links."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from shared.align import ROBOT_COLOURS
+
+    allp = np.concatenate(pts)
+    # view along the axis of least spread (the floor normal for a ground robot's map)
+    c = allp.mean(0)
+    _, V = np.linalg.eigh(np.cov((allp - c).T))
+    basis = V[:, [2, 1]]
+    fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
+    for k, (p, name) in enumerate(zip(pts, names, strict=True)):
+        uv = (p[:: max(1, len(p) // 20000)] - c) @ basis
+        ax.scatter(uv[:, 0], uv[:, 1], s=0.3, color=ROBOT_COLOURS[k % 8], alpha=0.5)
+        tr = (tracks[name] - c) @ basis
+        ax.plot(tr[:, 0], tr[:, 1], "-o", ms=2, color=ROBOT_COLOURS[k % 8] * 0.7, label=name)
+    ax.set_aspect("equal")
+    ax.legend(loc="best")
+    n_ov = len(report["overlaps"])
+    ax.set_title(
+        f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
+        f"{n_ov} verified overlaps (reference {report['reference']})"
+    )
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,76 @@
+"""`fleetmap merge`, the main job, with its services started in-process."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from services.cli import main
+from services.merge import spanning_placement
+from shared.geometry import transform_error
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fr1_pair"
+
+
+def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["merge", str(EXAMPLE / "alpha"), str(EXAMPLE / "bravo"), "--out", str(out)]) == 0
+    assert "merged 2 of 2 robots" in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["reference"] == "alpha" and report["unmerged"] == []
+    assert report["robots"]["bravo"]["keyframes"] == 1
+    np.testing.assert_allclose(report["transforms"]["alpha"], np.eye(4))
+    T = np.array(report["transforms"]["bravo"])
+    dt, dr = transform_error(T, np.loadtxt(EXAMPLE / "T_alpha_bravo.txt"))
+    assert dt < 0.05 and dr < 2.0
+    assert report["overlaps"][0]["inliers"] >= 50
+    assert set(report["timing_s"]) == {"extract", "ingest", "overlaps", "align", "total"}
+    assert (out / "merged.ply").read_bytes().startswith(b"ply")
+    assert (out / "overview.png").stat().st_size > 10_000
+    traj = (out / "trajectories" / "bravo.txt").read_text().splitlines()
+    assert len(traj) == 2 and traj[1].startswith("1305031102.275800")
+
+
+def test_merge_reports_bad_input(tmp_path, capsys):
+    assert (
+        main(
+            [
+                "merge",
+                str(tmp_path / "missing"),
+                str(EXAMPLE / "bravo"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
+    assert "Robot folder not found" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "merge",
+                f"x={EXAMPLE / 'alpha'}",
+                f"x={EXAMPLE / 'bravo'}",
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
+    assert "must differ" in capsys.readouterr().err
+
+
+def test_spanning_placement_chains_strongest_links_and_leaves_isolated_robots():
+    def shift(x):
+        T = np.eye(4)
+        T[0, 3] = x
+        return T
+
+    edges = {
+        ("A", "B"): {"T_a_b": shift(1), "inliers": 50},
+        ("B", "C"): {"T_a_b": shift(2), "inliers": 80},
+        ("A", "C"): {"T_a_b": shift(10), "inliers": 5},
+    }
+    placed, chain = spanning_placement(["A", "B", "C", "D"], edges)
+    assert set(placed) == {"A", "B", "C"}
+    assert chain["C"] == ["A", "B", "C"] and placed["C"][0, 3] == 3.0
