@@ -337,3 +337,50 @@ def align_request(
         pts, cols = merged_cloud(pairs, res, colour, p.voxel_m)
         cloud = (ply_bytes(pts, cols), len(pts))
     return res.to_dict(), cloud
+
+
+def _closed_fit(name: str, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    if name == "affine":
+        return fit_affine(X, Y)
+    return kabsch(X, Y, scale=name == "similarity")
+
+
+def select_model(
+    X: np.ndarray, Y: np.ndarray, margin: float = 0.9, folds: int = 5, try_mlp: bool = True
+):
+    """Our default for correspondences: the simplest of rigid, similarity, affine and the
+    thesis MLP whose cross-validated error is not beaten by `margin` x by a richer one.
+    Returns (name, fitted estimator with `.transform`)."""
+    from shared.estimators import AffineEstimator, RigidEstimator, SimilarityEstimator
+
+    order = np.random.default_rng(0).permutation(len(X))
+
+    def cv(name: str) -> float:
+        errs = []
+        for k in range(folds):
+            test = order[k::folds]
+            train = np.setdiff1d(order, test)
+            M = _closed_fit(name, X[train], Y[train])
+            errs.append(np.linalg.norm(apply(M, X[test]) - Y[test], axis=1))
+        return float(np.mean(np.concatenate(errs)))
+
+    best_name, best_err = "rigid", cv("rigid")
+    for name in ("similarity", "affine"):
+        err = cv(name)
+        if err < margin * best_err:
+            best_name, best_err = name, err
+    scale = float(np.linalg.norm(np.ptp(Y, axis=0)))
+    if try_mlp and len(X) >= 30 and best_err > 1e-9 * scale:
+        # a quick trial on at most 1,000 points; the full MLP only if it clearly wins
+        sub = order[:1000]
+        test, train = sub[: len(sub) // 5], sub[len(sub) // 5 :]
+        mlp = MLPEstimator(max_epochs=100).fit(X[train], Y[train])
+        mlp_err = float(np.linalg.norm(mlp.transform(X[test]) - Y[test], axis=1).mean())
+        M = _closed_fit(best_name, X[train], Y[train])
+        base = float(np.linalg.norm(apply(M, X[test]) - Y[test], axis=1).mean())
+        if mlp_err < margin * base:
+            return "mlp", MLPEstimator().fit(X, Y)
+    cls = {"rigid": RigidEstimator, "similarity": SimilarityEstimator, "affine": AffineEstimator}[
+        best_name
+    ]
+    return best_name, cls(threshold=np.inf).fit(X, Y)

@@ -240,7 +240,8 @@ class MLPEstimator:
         theta = self._init(gen)
         train = self._train_lm if self.optimizer == "lm" else self._train_adam
         threads = torch.get_num_threads()
-        torch.set_num_threads(1)  # ~150 weights: thread start-up costs more than it saves
+        # ~150 weights: on small sets thread start-up costs more than it saves
+        torch.set_num_threads(threads if len(tr) >= 2000 else 1)
         try:
             theta, self.n_epochs_, self.stop_reason_ = train(
                 theta, Zx[tr], Zy[tr], Zx[val], Zy[val]
