@@ -61,6 +61,25 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
     return Intrinsics.from_dict({**base, **overrides})
 
 
+def _read_robots(args: argparse.Namespace, robot_args: list[str]) -> list:
+    """Recordings with depth and poses for [NAME=]DIR arguments."""
+    from shared.dataset import parse_robot_arg, read_recording
+
+    recs = []
+    for arg in robot_args:
+        name, robot_dir = parse_robot_arg(arg)
+        recs.append(
+            read_recording(
+                robot_dir,
+                name,
+                _intrinsics(args, robot_dir),
+                require_depth=True,
+                require_poses=True,
+            )
+        )
+    return recs
+
+
 def _policy(args: argparse.Namespace):
     from shared.keyframes import KeyframePolicy
 
@@ -221,22 +240,9 @@ def cmd_align(args: argparse.Namespace) -> int:
     import json
 
     from shared.client import AlignerClient, PlaceDBClient
-    from shared.dataset import parse_robot_arg, read_recording
     from shared.pairs import load_view, select_pairs
 
-    recs = []
-    for arg in (args.robot_a, args.robot_b):
-        name, robot_dir = parse_robot_arg(arg)
-        recs.append(
-            read_recording(
-                robot_dir,
-                name,
-                _intrinsics(args, robot_dir),
-                require_depth=True,
-                require_poses=True,
-            )
-        )
-    rec_a, rec_b = recs
+    rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
     with PlaceDBClient(args.place_db) as db:
         overlaps = db.overlaps(rec_a.robot_id, rec_b.robot_id, wait=args.wait)
     pairs = select_pairs(overlaps, rec_a, rec_b, max_pairs=args.max_pairs)
@@ -275,21 +281,9 @@ def cmd_align(args: argparse.Namespace) -> int:
 def cmd_merge(args: argparse.Namespace) -> int:
     """The main job: N robot folders in, one global map and report out."""
     from services.merge import run_merge
-    from shared.dataset import parse_robot_arg, read_recording
     from shared.errors import BadInput
 
-    recs = []
-    for arg in args.robots:
-        name, robot_dir = parse_robot_arg(arg)
-        recs.append(
-            read_recording(
-                robot_dir,
-                name,
-                _intrinsics(args, robot_dir),
-                require_depth=True,
-                require_poses=True,
-            )
-        )
+    recs = _read_robots(args, args.robots)
     ids = [r.robot_id for r in recs]
     if len(set(ids)) != len(ids):
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")

@@ -103,6 +103,17 @@ class Filter:
     exclude_robots: set[int] = field(default_factory=set)
     max_stamp: float | None = None  # only keyframes strictly older (loop closure)
 
+    def mask(self, robots: np.ndarray, stamps: np.ndarray) -> np.ndarray:
+        """Which of the keyframes with these robot codes and stamps pass, shape (N,)."""
+        keep = np.ones(len(robots), bool)
+        if self.robots is not None:
+            keep &= np.isin(robots, list(self.robots))
+        if self.exclude_robots:
+            keep &= ~np.isin(robots, list(self.exclude_robots))
+        if self.max_stamp is not None:
+            keep &= stamps < self.max_stamp
+        return keep
+
 
 class PlaceIndex:
     """GIST IVF index plus bags of words in CSR form, keyed by keyframe id (increasing)."""
@@ -253,14 +264,7 @@ class PlaceIndex:
             robots = self.robots.view[slots]
             stamps = self.stamps.view[slots]
         t1 = time.perf_counter()
-        keep = np.ones(len(slots), bool)
-        if flt.robots is not None:
-            keep &= np.isin(robots, list(flt.robots))
-        if flt.exclude_robots:
-            keep &= ~np.isin(robots, list(flt.exclude_robots))
-        if flt.max_stamp is not None:
-            keep &= stamps < flt.max_stamp
-        idx = np.flatnonzero(keep)
+        idx = np.flatnonzero(flt.mask(robots, stamps))
         idx = idx[np.argsort(d2[idx], kind="stable")][: p.max_candidates]
         dist = np.sqrt(np.maximum(d2[idx], 0))
         cands = [
@@ -311,14 +315,7 @@ class PlaceIndex:
             slots = np.flatnonzero(self.alive.view)
             d = self._bow_by_slot(q_ids, q_counts, slots)
             robots, stamps = self.robots.view[slots], self.stamps.view[slots]
-            keep = np.ones(len(slots), bool)
-            if flt.robots is not None:
-                keep &= np.isin(robots, list(flt.robots))
-            if flt.exclude_robots:
-                keep &= ~np.isin(robots, list(flt.exclude_robots))
-            if flt.max_stamp is not None:
-                keep &= stamps < flt.max_stamp
-            idx = np.flatnonzero(keep)
+            idx = np.flatnonzero(flt.mask(robots, stamps))
             best = idx[np.argsort(d[idx], kind="stable")[:k]]
             return [
                 Candidate(
