@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -198,7 +199,7 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     """Select keyframes of robot folders, compute their frame structures and POST them."""
     from shared.client import PlaceDBClient
 
-    with PlaceDBClient(args.place_db) as client:
+    with PlaceDBClient(args.place_db, token=args.token) as client:
         vocab = _checked_vocabulary(client, args.vocab)
         for robot in args.robots:
             rid, n = ingest_robot(robot, client, args, vocab)
@@ -212,7 +213,7 @@ def cmd_overlaps(args: argparse.Namespace) -> int:
 
     from shared.client import PlaceDBClient
 
-    with PlaceDBClient(args.place_db) as client:
+    with PlaceDBClient(args.place_db, token=args.token) as client:
         pairs = client.overlaps(args.robot_a, args.robot_b, wait=args.wait)
     items = [
         {
@@ -243,7 +244,7 @@ def cmd_align(args: argparse.Namespace) -> int:
     from shared.pairs import load_view, select_pairs
 
     rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
-    with PlaceDBClient(args.place_db) as db:
+    with PlaceDBClient(args.place_db, token=args.token) as db:
         overlaps = db.overlaps(rec_a.robot_id, rec_b.robot_id, wait=args.wait)
     pairs = select_pairs(overlaps, rec_a, rec_b, max_pairs=args.max_pairs)
     if not pairs:
@@ -253,7 +254,7 @@ def cmd_align(args: argparse.Namespace) -> int:
         }
     else:
         views = [(load_view(rec_a, i), load_view(rec_b, j)) for i, j in pairs]
-        with AlignerClient(args.aligner, timeout=600) as aligner:
+        with AlignerClient(args.aligner, timeout=600, token=args.token) as aligner:
             res = aligner.align(views, method=args.method)
         out = {
             "merged": res["merged"],
@@ -305,6 +306,11 @@ def cmd_merge(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    parser.add_argument(
+        "--token",
+        default=os.environ.get("FLEETMAP_TOKEN"),
+        help="bearer token for the services (default: $FLEETMAP_TOKEN)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("extract", help="frame structures of a robot folder's keyframes")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hmac
 import logging
 import time
 import uuid
@@ -16,16 +17,22 @@ from shared.errors import (
     BadVocabulary,
     Conflict,
     FleetmapError,
+    Forbidden,
     NotEnoughCorrespondences,
     PayloadTooLarge,
+    Unauthorized,
     Unavailable,
     UnknownKeyframe,
     UnknownRobot,
+    UnsupportedEncoding,
 )
 
 log = logging.getLogger("fleetmap.http")
 
 STATUS = [
+    (Unauthorized, 401),
+    (Forbidden, 403),
+    (UnsupportedEncoding, 415),
     (PayloadTooLarge, 413),
     (BadFrame, 400),
     (UnknownRobot, 404),
@@ -74,7 +81,13 @@ def install(app: FastAPI) -> None:
 
 async def read_body(request: Request, limit: int) -> bytes:
     """The request body, refused with 413 as soon as it passes `limit` bytes (checked on the
-    declared length first, then while streaming, so an oversized body is never held whole)."""
+    declared length first, then while streaming, so an oversized body is never held whole).
+    Compressed bodies are refused (415): a small gzip could expand past any limit."""
+    encoding = request.headers.get("content-encoding", "identity").strip().lower()
+    if encoding not in ("", "identity"):
+        raise UnsupportedEncoding(
+            f"Content-Encoding {encoding!r} is not accepted: send the body uncompressed"
+        )
     declared = request.headers.get("content-length")
     if declared is not None:
         try:
@@ -90,3 +103,53 @@ async def read_body(request: Request, limit: int) -> bytes:
             raise PayloadTooLarge(f"Body exceeds the {limit}-byte limit")
         chunks.append(chunk)
     return b"".join(chunks)
+
+
+def auth_summary(settings) -> str:
+    """One line for the start-up log; never the tokens themselves."""
+    op = settings.operator_token is not None
+    n = len(settings.robot_tokens)
+    if not op and not n:
+        return "access control OFF: no tokens configured, anyone on the network may read and write"
+    return f"access control on: operator token {'set' if op else 'not set'}, {n} robot tokens"
+
+
+def _same(a: str, b: str) -> bool:
+    return hmac.compare_digest(a.encode(), b.encode())
+
+
+def check_access(request: Request, robot: str | None = None, operator: bool = False) -> str:
+    """Who may do this: 'open' without configured tokens, else 'operator' or 'robot:<id>'.
+
+    robot: the robot whose data is written (its own token or the operator's may).
+    operator: only the operator token may. Comparisons are constant-time."""
+    st = request.app.state.settings
+    if st.operator_token is None and not st.robot_tokens:
+        return "open"
+    header = request.headers.get("authorization", "")
+    scheme, _, token = header.partition(" ")
+    if scheme.lower() != "bearer" or not token:
+        raise Unauthorized("Missing 'Authorization: Bearer <token>' header")
+    if st.operator_token is not None and _same(token, st.operator_token.get_secret_value()):
+        return "operator"
+    owner = None
+    for rid, secret in st.robot_tokens.items():  # no early exit: constant time per robot
+        if _same(token, secret.get_secret_value()):
+            owner = rid
+    if owner is None:
+        raise Unauthorized("Invalid token")
+    if operator:
+        raise Forbidden("This action needs the operator token")
+    if robot is not None and owner != robot:
+        raise Forbidden(f"The token of robot {owner!r} may not write robot {robot!r}")
+    return f"robot:{owner}"
+
+
+def operator_only(request: Request) -> None:
+    """Dependency: the operator token (or an open deployment)."""
+    check_access(request, operator=True)
+
+
+def any_token(request: Request) -> None:
+    """Dependency: any valid token (or an open deployment)."""
+    check_access(request)

@@ -99,6 +99,7 @@ def run_merge(
     max_pairs: int = 8,
     voxel: float = 0.03,
     quiet: bool = False,
+    token: str | None = None,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, trajectories/, overview.png."""
     out.mkdir(parents=True, exist_ok=True)
@@ -110,8 +111,8 @@ def run_merge(
             place_db = stack.enter_context(embedded_service("place-db", tmp))
         if aligner is None:
             aligner = stack.enter_context(embedded_service("aligner"))
-        db = stack.enter_context(PlaceDBClient(place_db))
-        al = stack.enter_context(AlignerClient(aligner, timeout=900))
+        db = stack.enter_context(PlaceDBClient(place_db, token=token))
+        al = stack.enter_context(AlignerClient(aligner, timeout=900, token=token))
         from services.cli import _checked_vocabulary
 
         vocab = _checked_vocabulary(db, vocab_path)

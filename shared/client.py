@@ -6,7 +6,15 @@ import time
 
 import httpx
 
-from shared.errors import BadInput, Conflict, FleetmapError, Unavailable, UnknownRobot
+from shared.errors import (
+    BadInput,
+    Conflict,
+    FleetmapError,
+    Forbidden,
+    Unauthorized,
+    Unavailable,
+    UnknownRobot,
+)
 from shared.frame import Frame, encode
 
 OCTET = {"content-type": "application/octet-stream"}
@@ -32,6 +40,10 @@ def _raise_for(resp: httpx.Response) -> httpx.Response:
         raise UnknownRobot(detail)
     if resp.status_code == 409:
         raise Conflict(detail)
+    if resp.status_code == 401:
+        raise Unauthorized(f"{resp.request.url.path}: {detail}")
+    if resp.status_code == 403:
+        raise Forbidden(f"{resp.request.url.path}: {detail}")
     if resp.status_code in (400, 413, 422):
         raise BadInput(f"{resp.request.url.path}: {detail}")
     raise ServiceError(resp.status_code, detail)

@@ -52,3 +52,15 @@ class Conflict(FleetmapError):
 
 class Unavailable(FleetmapError):
     """A service or resource that cannot be reached or is not ready."""
+
+
+class Unauthorized(FleetmapError):
+    """No valid credentials."""
+
+
+class Forbidden(FleetmapError):
+    """Valid credentials that do not allow this action."""
+
+
+class UnsupportedEncoding(BadInput):
+    """A body in a content encoding the service does not accept (e.g. compressed)."""

@@ -137,3 +137,34 @@ def tum_robot_dirs(tum_pairs: Path, tmp_path: Path):
         ],
     )
     return a, b, np.linalg.inv(T_b_w)
+
+
+def textured_image(seed: int, h: int = 240, w: int = 320) -> np.ndarray:
+    """A procedurally textured image with real MSER/SIFT structure (blobs, boxes, lines)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = np.full((h, w, 3), rng.integers(60, 200), np.uint8)
+    for _ in range(60):
+        colour = tuple(int(c) for c in rng.integers(0, 255, 3))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        kind = rng.integers(3)
+        if kind == 0:
+            cv2.circle(img, (x, y), int(rng.integers(3, 20)), colour, -1)
+        elif kind == 1:
+            cv2.rectangle(img, (x, y), (x + int(rng.integers(5, 40)),
+                                        y + int(rng.integers(5, 40))), colour, -1)
+        else:
+            cv2.line(img, (x, y), (int(rng.integers(0, w)), int(rng.integers(0, h))), colour, 2)
+    return img
+
+
+@pytest.fixture(scope="session")
+def fleet_frames(vocabulary):
+    """8 robots x 25 encoded frames of distinct textured views: {robot: [bytes]}."""
+    from shared.extract import FrameExtractor
+    from shared.frame import encode
+
+    x = FrameExtractor(vocabulary)
+    return {f"r{k}": [encode(x(f"r{k}", 100.0 + i, textured_image(1000 * k + i)))
+                      for i in range(25)] for k in range(8)}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pydantic import SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.align import AlignParams
@@ -14,6 +15,9 @@ class Settings(BaseSettings):
         env_prefix="FLEETMAP_ALIGNER_", env_file=".env", extra="ignore"
     )
 
+    # access control: none configured = open (logged at start-up)
+    operator_token: SecretStr | None = None
+    robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = 256 * 1024 * 1024
     max_pairs: int = 32
     max_image_pixels: int = 4096 * 4096

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 from contextlib import asynccontextmanager
 
@@ -21,6 +22,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         import torch  # noqa: F401
 
         app.state.clouds = OrderedDict()
+        logging.getLogger(__name__).warning("aligner: %s", common.auth_summary(settings))
         yield
         app.state.clouds.clear()
 

@@ -7,11 +7,12 @@ import uuid
 
 import cv2
 import numpy as np
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from services.aligner import schemas as s
+from services.common import any_token
 from shared.align import align_request
 from shared.camera import Intrinsics
 from shared.correspondences import RGBDView
@@ -65,7 +66,12 @@ async def _views(form, meta: s.AlignMeta, max_pixels: int) -> list[tuple[RGBDVie
     return pairs
 
 
-@router.post("/align", response_model=s.AlignAnswer, response_model_exclude_none=True)
+@router.post(
+    "/align",
+    response_model=s.AlignAnswer,
+    response_model_exclude_none=True,
+    dependencies=[Depends(any_token)],
+)
 async def align(request: Request) -> s.AlignAnswer:
     """Fit the transform from robot B's map frame into robot A's from RGB-D pairs."""
     st = request.app.state.settings
@@ -98,6 +104,7 @@ async def align(request: Request) -> s.AlignAnswer:
 
 @router.get(
     "/clouds/{cloud_id}",
+    dependencies=[Depends(any_token)],
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.frame import MAX_FRAME_BYTES
@@ -27,6 +27,9 @@ class Settings(BaseSettings):
     data_dir: Path = Field(default_factory=default_data_dir)
     db_file: str = "place_db.sqlite"
     vocabulary: Path | None = None  # None: the shipped default
+    # access control: none configured = open (logged at start-up)
+    operator_token: SecretStr | None = None
+    robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = MAX_FRAME_BYTES
     # cascade (thesis Algorithm 3); defaults from shared.retrieval / shared.matching
     m_clusters: int = _C.m_clusters

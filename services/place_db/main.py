@@ -50,6 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             background=settings.background_overlaps,
         )
         log.info("place database at %s, vocabulary %s", settings.db_path, vocab.vocab_id)
+        log.warning("place database: %s", common.auth_summary(settings))
         yield
         app.state.db.close()
 

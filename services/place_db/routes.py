@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from services.common import read_body
+from services.common import any_token, check_access, operator_only, read_body
 from services.place_db import schemas as s
 from shared.errors import BadInput
 from shared.frame import decode
@@ -48,6 +48,7 @@ def healthz(request: Request) -> s.Health:
 )
 async def ingest(robot_id: str, request: Request, response: Response) -> s.KeyframeCreated:
     """Store one keyframe's frame structure durably; 201 once it is on disk."""
+    check_access(request, robot=robot_id)  # before the body is read
     body = await read_body(request, request.app.state.settings.max_body_bytes)
     kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body)
     if not created:
@@ -56,13 +57,17 @@ async def ingest(robot_id: str, request: Request, response: Response) -> s.Keyfr
     return s.KeyframeCreated(id=kf_id, robot_id=robot_id, stamp=info["stamp"], created=created)
 
 
-@router.get("/robots", response_model=s.Robots)
+@router.get("/robots", response_model=s.Robots, dependencies=[Depends(operator_only)])
 def robots(request: Request) -> s.Robots:
     """The robots known, with keyframe counts."""
     return s.Robots(robots=[s.RobotInfo(**r) for r in _db(request).robots()])
 
 
-@router.get("/robots/{robot_id}/keyframes", response_model=s.Keyframes)
+@router.get(
+    "/robots/{robot_id}/keyframes",
+    response_model=s.Keyframes,
+    dependencies=[Depends(operator_only)],
+)
 def keyframes(
     robot_id: str,
     request: Request,
@@ -74,7 +79,9 @@ def keyframes(
     return s.Keyframes(robot_id=robot_id, keyframes=[s.KeyframeInfo(**r) for r in rows])
 
 
-@router.delete("/robots/{robot_id}", response_model=s.Deleted)
+@router.delete(
+    "/robots/{robot_id}", response_model=s.Deleted, dependencies=[Depends(operator_only)]
+)
 def delete_robot(robot_id: str, request: Request) -> s.Deleted:
     """Delete a robot with its keyframes and overlaps."""
     return s.Deleted(robot_id=robot_id, deleted_keyframes=_db(request).delete_robot(robot_id))
@@ -82,10 +89,11 @@ def delete_robot(robot_id: str, request: Request) -> s.Deleted:
 
 @router.get(
     "/keyframes/{kf_id}/frame",
+    dependencies=[Depends(operator_only)],
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
-def keyframe_frame(kf_id: int, request: Request) -> Response:
+def keyframe_frame(request: Request, kf_id: int = Path(ge=1, le=2**63 - 1)) -> Response:
     """The stored encoded frame of one keyframe."""
     return Response(_db(request).frame_bytes(kf_id), media_type="application/octet-stream")
 
@@ -102,7 +110,12 @@ def _winner(db: PlaceDB, c: Candidate) -> s.Winner:
     )
 
 
-@router.post("/query", response_model=s.QueryAnswer, openapi_extra=FRAME_BODY)
+@router.post(
+    "/query",
+    response_model=s.QueryAnswer,
+    openapi_extra=FRAME_BODY,
+    dependencies=[Depends(any_token)],
+)
 async def query(
     request: Request,
     robot: str | None = None,
@@ -124,7 +137,12 @@ async def query(
     )
 
 
-@router.get("/overlaps", response_model=s.Overlaps, response_model_exclude_none=True)
+@router.get(
+    "/overlaps",
+    response_model=s.Overlaps,
+    response_model_exclude_none=True,
+    dependencies=[Depends(operator_only)],
+)
 def overlaps(
     request: Request,
     robot_a: str | None = None,
@@ -158,7 +176,7 @@ def overlaps(
     return s.Overlaps(overlaps=pairs, pending=db.pending())
 
 
-@router.get("/vocabulary")
+@router.get("/vocabulary", dependencies=[Depends(any_token)])
 def vocabulary(request: Request) -> dict:
     """The vocabulary frames must be built with."""
     v = _db(request).vocabulary
@@ -171,13 +189,13 @@ def vocabulary(request: Request) -> dict:
     }
 
 
-@router.get("/stats")
+@router.get("/stats", dependencies=[Depends(operator_only)])
 def stats(request: Request) -> dict:
     """Database and index statistics (cluster balance, pending work, sizes)."""
     return _db(request).stats()
 
 
-@router.post("/admin/retrain", response_model=s.Retrained)
+@router.post("/admin/retrain", response_model=s.Retrained, dependencies=[Depends(operator_only)])
 def retrain(request: Request, clusters: int | None = Query(None, ge=2, le=65536)) -> s.Retrained:
     """Retrain the coarse GIST codebook from the stored keyframes; no downtime."""
     return s.Retrained(**_db(request).retrain(clusters))

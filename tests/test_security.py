@@ -1,0 +1,107 @@
+"""Access control, compressed and oversized bodies, and what the logs never show."""
+
+import gzip
+import logging
+
+import pytest
+from fastapi.testclient import TestClient
+
+from services.aligner.config import Settings as AlignerSettings
+from services.aligner.main import create_app as create_aligner
+from services.place_db.config import Settings
+from services.place_db.main import create_app
+from shared.frame import decode, encode
+from tests.test_frame import _mk
+
+OCTET = {"content-type": "application/octet-stream"}
+OP, TOK_A, TOK_B = "op-secret-123", "robot-a-secret", "robot-b-secret"
+
+
+def _frame(robot: str, stamp: float = 1.0) -> bytes:
+    from shared.vocabulary import load_vocabulary
+
+    f = _mk(robot_id=robot, stamp=stamp)
+    f.vocab_id = load_vocabulary().vocab_id
+    return encode(f)
+
+
+@pytest.fixture
+def secured(tmp_path):
+    st = Settings(data_dir=tmp_path, operator_token=OP,
+                  robot_tokens={"A": TOK_A, "B": TOK_B})
+    with TestClient(create_app(st)) as c:
+        yield c
+
+
+def _auth(tok):
+    return {"authorization": f"Bearer {tok}"}
+
+
+def test_robot_tokens_write_only_their_own_robot(secured):
+    post = secured.post
+    assert post("/robots/A/keyframes", content=_frame("A"), headers=OCTET).status_code == 401
+    r = post("/robots/A/keyframes", content=_frame("A"), headers={**OCTET, **_auth("nope")})
+    assert r.status_code == 401 and r.json()["detail"] == "Invalid token"
+    r = post("/robots/A/keyframes", content=_frame("A"), headers={**OCTET, **_auth(TOK_B)})
+    assert r.status_code == 403 and "robot 'B' may not write robot 'A'" in r.json()["detail"]
+    assert post("/robots/A/keyframes", content=_frame("A"),
+                headers={**OCTET, **_auth(TOK_A)}).status_code == 201
+    assert post("/robots/B/keyframes", content=_frame("B"),
+                headers={**OCTET, **_auth(OP)}).status_code == 201  # operator may write
+
+
+def test_operator_token_reads_and_administers(secured):
+    for method, path in [("get", "/robots"), ("get", "/overlaps"), ("get", "/stats"),
+                         ("delete", "/robots/A"), ("post", "/admin/retrain")]:
+        assert getattr(secured, method)(path, headers=_auth(TOK_A)).status_code == 403, path
+        assert getattr(secured, method)(path).status_code == 401, path
+    assert secured.get("/robots", headers=_auth(OP)).json() == {"robots": []}
+    # robots may query and read the vocabulary; health is open
+    assert secured.get("/vocabulary", headers=_auth(TOK_A)).status_code == 200
+    assert secured.post("/query", content=_frame("A"),
+                        headers={**OCTET, **_auth(TOK_A)}).status_code == 200
+    assert secured.get("/healthz").status_code == 200
+
+
+def test_tokens_never_reach_the_logs(tmp_path, caplog):
+    caplog.set_level(logging.DEBUG)
+    st = Settings(data_dir=tmp_path, operator_token=OP, robot_tokens={"A": TOK_A})
+    with TestClient(create_app(st)) as c:
+        c.post("/robots/A/keyframes", content=_frame("A"), headers={**OCTET, **_auth(TOK_A)})
+        c.get("/robots", headers=_auth("wrong-token-xyz"))
+    text = caplog.text + repr(st)
+    assert "access control on" in caplog.text
+    for secret in (OP, TOK_A, "wrong-token-xyz"):
+        assert secret not in text
+
+
+def test_open_deployment_says_so(tmp_path, caplog):
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as c:
+        assert c.get("/robots").status_code == 200
+    assert "access control OFF" in caplog.text
+
+
+def test_compressed_bodies_are_refused_and_nothing_is_stored(tmp_path):
+    with TestClient(create_app(Settings(data_dir=tmp_path, max_body_bytes=100_000))) as c:
+        bomb = gzip.compress(bytes(50_000_000))  # 50 MB of zeros in ~50 KB
+        r = c.post("/robots/A/keyframes", content=bomb,
+                   headers={**OCTET, "content-encoding": "gzip"})
+        assert r.status_code == 415 and "gzip" in r.json()["detail"]
+        r = c.post("/robots/A/keyframes", content=bytes(200_000), headers=OCTET)
+        assert r.status_code == 413
+        assert c.get("/robots").json() == {"robots": []}
+
+
+def test_aligner_requires_a_token_when_configured():
+    st = AlignerSettings(operator_token=OP)
+    with TestClient(create_aligner(st)) as c:
+        assert c.post("/align", data={"meta": "{}"}).status_code == 401
+        r = c.post("/align", data={"meta": "{}"}, headers=_auth(OP))
+        assert r.status_code == 422  # authorised, then the bad request is named
+        assert c.get("/healthz").status_code == 200
+
+
+def test_frame_robot_must_match_even_with_operator_token(secured):
+    f = decode(_frame("A"))
+    r = secured.post("/robots/B/keyframes", content=encode(f), headers={**OCTET, **_auth(OP)})
+    assert r.status_code == 422 and "posted for 'B'" in r.json()["detail"]
