@@ -153,3 +153,23 @@ def operator_only(request: Request) -> None:
 def any_token(request: Request) -> None:
     """Dependency: any valid token (or an open deployment)."""
     check_access(request)
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per log line, with the request fields the middleware attaches."""
+
+    FIELDS = ("request_id", "method", "path", "status", "ms")
+
+    def format(self, record: logging.LogRecord) -> str:
+        import json
+
+        out = {
+            "time": self.formatTime(record),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        out.update({k: getattr(record, k) for k in self.FIELDS if hasattr(record, k)})
+        if record.exc_info:
+            out["exception"] = self.formatException(record.exc_info)
+        return json.dumps(out)

@@ -502,6 +502,13 @@ class PlaceDB:
             time.sleep(0.02)
         return True
 
+    def ping(self) -> bool:
+        """The database answers a trivial read."""
+        try:
+            return self._reader().execute("SELECT 1").fetchone() == (1,)
+        except sqlite3.Error:
+            return False
+
     def stats(self) -> dict:
         sizes = self.index.cluster_sizes()
         nonempty = sizes[sizes > 0]

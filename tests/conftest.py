@@ -152,8 +152,13 @@ def textured_image(seed: int, h: int = 240, w: int = 320) -> np.ndarray:
         if kind == 0:
             cv2.circle(img, (x, y), int(rng.integers(3, 20)), colour, -1)
         elif kind == 1:
-            cv2.rectangle(img, (x, y), (x + int(rng.integers(5, 40)),
-                                        y + int(rng.integers(5, 40))), colour, -1)
+            cv2.rectangle(
+                img,
+                (x, y),
+                (x + int(rng.integers(5, 40)), y + int(rng.integers(5, 40))),
+                colour,
+                -1,
+            )
         else:
             cv2.line(img, (x, y), (int(rng.integers(0, w)), int(rng.integers(0, h))), colour, 2)
     return img
@@ -166,5 +171,7 @@ def fleet_frames(vocabulary):
     from shared.frame import encode
 
     x = FrameExtractor(vocabulary)
-    return {f"r{k}": [encode(x(f"r{k}", 100.0 + i, textured_image(1000 * k + i)))
-                      for i in range(25)] for k in range(8)}
+    return {
+        f"r{k}": [encode(x(f"r{k}", 100.0 + i, textured_image(1000 * k + i))) for i in range(25)]
+        for k in range(8)
+    }

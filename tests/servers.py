@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -30,25 +31,41 @@ class Service:
         self.url = f"http://127.0.0.1:{self.port}"
 
     def start(self, timeout: float = 60.0) -> Service:
-        cmd = [sys.executable, "-m", "services.cli", "serve", self.kind, "--port", str(self.port)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "-v",
+            "serve",
+            self.kind,
+            "--port",
+            str(self.port),
+        ]
         if self.data_dir is not None:
             cmd += ["--data-dir", str(self.data_dir)]
+        # logs to a file, not a pipe: an unread pipe fills up and blocks the server
+        self.log = tempfile.NamedTemporaryFile(
+            prefix=f"fleetmap-{self.kind}-", suffix=".log", delete=False
+        )
         self.proc = subprocess.Popen(
             cmd,
             cwd=ROOT,
             env={**os.environ, **self.env},
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
+            stderr=self.log,
         )
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"{self.kind} exited: {self.proc.stderr.read().decode()}")
+                raise RuntimeError(f"{self.kind} exited: {self.read_log()}")
             with contextlib.suppress(httpx.TransportError):
                 if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
                     return self
             time.sleep(0.1)
         raise RuntimeError(f"{self.kind} did not start within {timeout} s")
+
+    def read_log(self) -> str:
+        return Path(self.log.name).read_text(errors="replace")
 
     def kill(self) -> None:
         """SIGKILL: no chance to flush or clean up."""

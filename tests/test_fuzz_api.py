@@ -17,14 +17,16 @@ def _fuzz(schema, examples: int) -> list[str]:
 
 
 def _fuzz_operation(op, examples: int, failures: list[str]) -> None:
-    @settings(max_examples=examples, deadline=None, database=None,
-              suppress_health_check=list(HealthCheck))
+    @settings(
+        max_examples=examples, deadline=None, database=None, suppress_health_check=list(HealthCheck)
+    )
     @given(case=op.as_strategy())
     def run(case):
         response = case.call(timeout=60)
         if response.status_code >= 500:
-            failures.append(f"{op.method.upper()} {op.path} -> {response.status_code}: "
-                            f"{response.text[:200]}")
+            failures.append(
+                f"{op.method.upper()} {op.path} -> {response.status_code}: {response.text[:200]}"
+            )
 
     run()
 

@@ -27,8 +27,7 @@ def _frame(robot: str, stamp: float = 1.0) -> bytes:
 
 @pytest.fixture
 def secured(tmp_path):
-    st = Settings(data_dir=tmp_path, operator_token=OP,
-                  robot_tokens={"A": TOK_A, "B": TOK_B})
+    st = Settings(data_dir=tmp_path, operator_token=OP, robot_tokens={"A": TOK_A, "B": TOK_B})
     with TestClient(create_app(st)) as c:
         yield c
 
@@ -44,22 +43,35 @@ def test_robot_tokens_write_only_their_own_robot(secured):
     assert r.status_code == 401 and r.json()["detail"] == "Invalid token"
     r = post("/robots/A/keyframes", content=_frame("A"), headers={**OCTET, **_auth(TOK_B)})
     assert r.status_code == 403 and "robot 'B' may not write robot 'A'" in r.json()["detail"]
-    assert post("/robots/A/keyframes", content=_frame("A"),
-                headers={**OCTET, **_auth(TOK_A)}).status_code == 201
-    assert post("/robots/B/keyframes", content=_frame("B"),
-                headers={**OCTET, **_auth(OP)}).status_code == 201  # operator may write
+    assert (
+        post(
+            "/robots/A/keyframes", content=_frame("A"), headers={**OCTET, **_auth(TOK_A)}
+        ).status_code
+        == 201
+    )
+    assert (
+        post("/robots/B/keyframes", content=_frame("B"), headers={**OCTET, **_auth(OP)}).status_code
+        == 201
+    )  # operator may write
 
 
 def test_operator_token_reads_and_administers(secured):
-    for method, path in [("get", "/robots"), ("get", "/overlaps"), ("get", "/stats"),
-                         ("delete", "/robots/A"), ("post", "/admin/retrain")]:
+    for method, path in [
+        ("get", "/robots"),
+        ("get", "/overlaps"),
+        ("get", "/stats"),
+        ("delete", "/robots/A"),
+        ("post", "/admin/retrain"),
+    ]:
         assert getattr(secured, method)(path, headers=_auth(TOK_A)).status_code == 403, path
         assert getattr(secured, method)(path).status_code == 401, path
     assert secured.get("/robots", headers=_auth(OP)).json() == {"robots": []}
     # robots may query and read the vocabulary; health is open
     assert secured.get("/vocabulary", headers=_auth(TOK_A)).status_code == 200
-    assert secured.post("/query", content=_frame("A"),
-                        headers={**OCTET, **_auth(TOK_A)}).status_code == 200
+    assert (
+        secured.post("/query", content=_frame("A"), headers={**OCTET, **_auth(TOK_A)}).status_code
+        == 200
+    )
     assert secured.get("/healthz").status_code == 200
 
 
@@ -84,8 +96,9 @@ def test_open_deployment_says_so(tmp_path, caplog):
 def test_compressed_bodies_are_refused_and_nothing_is_stored(tmp_path):
     with TestClient(create_app(Settings(data_dir=tmp_path, max_body_bytes=100_000))) as c:
         bomb = gzip.compress(bytes(50_000_000))  # 50 MB of zeros in ~50 KB
-        r = c.post("/robots/A/keyframes", content=bomb,
-                   headers={**OCTET, "content-encoding": "gzip"})
+        r = c.post(
+            "/robots/A/keyframes", content=bomb, headers={**OCTET, "content-encoding": "gzip"}
+        )
         assert r.status_code == 415 and "gzip" in r.json()["detail"]
         r = c.post("/robots/A/keyframes", content=bytes(200_000), headers=OCTET)
         assert r.status_code == 413

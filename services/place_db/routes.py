@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from services.common import any_token, check_access, operator_only, read_body
+from services.common import any_token, auth_summary, check_access, operator_only, read_body
 from services.place_db import schemas as s
 from shared.errors import BadInput
 from shared.frame import decode
@@ -29,13 +29,18 @@ def _db(request: Request) -> PlaceDB:
 @router.get("/healthz", response_model=s.Health)
 def healthz(request: Request) -> s.Health:
     """Liveness and the state of the database and the index."""
-    st = _db(request).stats()
+    db = _db(request)
+    st = db.stats()
     return s.Health(
-        status="ok",
+        status="ok" if db.ping() else "degraded",
         keyframes=st["keyframes"],
         robots=st["robots"],
         pending=st["pending"],
         database=st["db_path"],
+        database_ok=db.ping(),
+        index_clusters=st["clusters"],
+        index_cluster_max=st["cluster_max"],
+        access_control=auth_summary(request.app.state.settings),
     )
 
 

@@ -12,6 +12,10 @@ class Health(BaseModel):
     robots: int
     pending: int
     database: str
+    database_ok: bool
+    index_clusters: int
+    index_cluster_max: int
+    access_control: str
 
 
 class KeyframeCreated(BaseModel):
