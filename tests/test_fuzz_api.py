@@ -18,7 +18,11 @@ def _fuzz(schema, examples: int) -> list[str]:
 
 def _fuzz_operation(op, examples: int, failures: list[str]) -> None:
     @settings(
-        max_examples=examples, deadline=None, database=None, suppress_health_check=list(HealthCheck)
+        max_examples=examples,
+        deadline=None,
+        database=None,
+        derandomize=True,
+        suppress_health_check=list(HealthCheck),
     )
     @given(case=op.as_strategy())
     def run(case):
@@ -36,7 +40,7 @@ def test_no_5xx_and_no_hang(kind, tmp_path):
     svc = Service(kind, tmp_path / "db" if kind == "place-db" else None).start()
     try:
         schema = schemathesis.openapi.from_url(svc.url + "/openapi.json")
-        assert _fuzz(schema, examples=30) == []
+        assert _fuzz(schema, examples=60) == []
         assert svc.proc.poll() is None  # still alive
     finally:
         svc.stop()
