@@ -373,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="default",
         choices=["default", "rigid", "similarity", "affine", "mlp", "icp"],
     )
-    p.add_argument("--max-pairs", type=int, default=8)
+    p.add_argument("--max-pairs", type=int, default=24)
     p.add_argument("--wait", type=float, default=120.0)
     _add_camera_args(p)
     p.set_defaults(func=cmd_align)
@@ -384,7 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--place-db", metavar="URL", help="default: start one in-process")
     p.add_argument("--aligner", metavar="URL", help="default: start one in-process")
     p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
-    p.add_argument("--max-pairs", type=int, default=8)
+    p.add_argument("--max-pairs", type=int, default=24)
     _add_camera_args(p)
     _add_keyframe_args(p)
     p.set_defaults(func=cmd_merge)

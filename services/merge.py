@@ -96,7 +96,7 @@ def run_merge(
     vocab_path=None,
     place_db: str | None = None,
     aligner: str | None = None,
-    max_pairs: int = 8,
+    max_pairs: int = 24,
     voxel: float = 0.03,
     quiet: bool = False,
     token: str | None = None,

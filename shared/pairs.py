@@ -22,14 +22,16 @@ def select_pairs(
     overlaps: list[dict],
     rec_a: Recording,
     rec_b: Recording,
-    max_pairs: int = 8,
-    expand: int = 1,
+    max_pairs: int = 24,
+    expand: int = 2,
     step: int = 5,
 ) -> list[tuple[int, int]]:
-    """Frame index pairs (a, b) to align: the verified overlaps, each optionally widened by
-    `expand` neighbours `step` frames apart on both robots, then a spread-out subset.
+    """Frame index pairs (a, b) to align: the verified overlaps, each widened to the grid of
+    frames up to `expand` x `step` frames before and after on both robots (neighbours of a
+    verified pair usually overlap too, and the place database verifies few pairs across
+    wide baselines), then a spread-out subset.
 
-    Spread: greedy farthest-point selection on robot A's camera positions, starting from
+    Spread: greedy farthest-point selection on both cameras' positions, starting from
     the pair with most inliers (thesis Table 3.5: spread matters more than count).
     """
     if not overlaps:
@@ -38,11 +40,15 @@ def select_pairs(
     cand: list[tuple[int, int]] = []
     for o in seeds:
         i, j = frame_at(rec_a, o["stamp_a"]), frame_at(rec_b, o["stamp_b"])
-        for d in range(-expand, expand + 1):
-            ii, jj = i + d * step, j + d * step
-            if 0 <= ii < len(rec_a) and 0 <= jj < len(rec_b) and (ii, jj) not in cand:
-                cand.append((ii, jj))
-    pos = np.array([_position(rec_a.frames[i]) for i, _ in cand])
+        for da in range(-expand, expand + 1):
+            for db in range(-expand, expand + 1):
+                ii, jj = i + da * step, j + db * step
+                if 0 <= ii < len(rec_a) and 0 <= jj < len(rec_b) and (ii, jj) not in cand:
+                    cand.append((ii, jj))
+    # spread over both robots' camera positions (each in its own map frame)
+    pos = np.array(
+        [np.concatenate([_position(rec_a.frames[i]), _position(rec_b.frames[j])]) for i, j in cand]
+    )
     chosen = [0]
     dist = np.linalg.norm(pos - pos[0], axis=1)
     while len(chosen) < min(max_pairs, len(cand)):
