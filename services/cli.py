@@ -303,6 +303,25 @@ def cmd_merge(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """A synthetic fleet recording with the true transforms beside it."""
+    from shared.simulate import simulate_fleet
+
+    out = Path(args.out)
+    if args.robots < 1:
+        from shared.errors import BadInput
+
+        raise BadInput(f"--robots must be at least 1, got {args.robots}")
+    simulate_fleet(
+        out, args.robots, args.frames, args.seed, progress=lambda it, **kw: tqdm(it, **kw)
+    )
+    print(
+        f"{args.robots} robots x {args.frames} frames -> {out} (true transforms: "
+        f"{out / 'T_true.json'})"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
@@ -388,6 +407,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_camera_args(p)
     _add_keyframe_args(p)
     p.set_defaults(func=cmd_merge)
+
+    p = sub.add_parser("simulate", help="render a synthetic fleet recording (TUM layout)")
+    p.add_argument("out", metavar="OUT_DIR")
+    p.add_argument("--robots", type=int, default=3)
+    p.add_argument("--frames", type=int, default=30, help="frames per robot")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_simulate)
     return parser
 
 

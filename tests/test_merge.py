@@ -74,3 +74,20 @@ def test_spanning_placement_chains_strongest_links_and_leaves_isolated_robots():
     placed, chain = spanning_placement(["A", "B", "C", "D"], edges)
     assert set(placed) == {"A", "B", "C"}
     assert chain["C"] == ["A", "B", "C"] and placed["C"][0, 3] == 3.0
+
+
+def test_merge_simulated_three_robot_fleet(tmp_path, capsys):
+    """`fleetmap simulate` then `fleetmap merge`: every robot placed within 5 cm / 2 deg of
+    the true transform between map frames, through the overlap graph."""
+    sim, out = tmp_path / "fleet", tmp_path / "out"
+    assert main(["simulate", str(sim), "--robots", "3", "--frames", "16"]) == 0
+    truth = json.loads((sim / "T_true.json").read_text())
+    assert main(["merge", *(str(sim / r) for r in truth), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["unmerged"] == [] and report["reference"] == "robot0"
+    for robot, T in report["transforms"].items():
+        dt, dr = transform_error(np.array(T), np.array(truth[robot]))
+        assert dt < 0.05 and dr < 2.0, (robot, dt, dr)
+    pairs = {(o["robot_a"], o["robot_b"]) for o in report["overlaps"]}
+    assert len({frozenset(p) for p in pairs}) == 3  # every pair of robots overlaps
+    assert (out / "trajectories" / "robot2.txt").is_file()
