@@ -89,6 +89,38 @@ def spanning_placement(
         chain[dst] = chain[src] + [dst]
 
 
+def optimise_poses(
+    placed: dict[str, np.ndarray], edges: dict[tuple[str, str], dict], reference: str
+) -> tuple[dict[str, np.ndarray], bool]:
+    """Pose-graph optimisation (Open3D) when the merged edges form cycles; the spanning
+    tree's placement is the initial guess and the reference robot stays fixed."""
+    import open3d as o3d
+
+    names = [n for n in placed]
+    used = [(a, b, e) for (a, b), e in edges.items() if a in placed and b in placed]
+    if len(used) <= len(names) - 1:
+        return placed, False  # a tree: nothing to reconcile
+    reg = o3d.pipelines.registration
+    graph = reg.PoseGraph()
+    order = [reference] + [n for n in names if n != reference]
+    idx = {n: k for k, n in enumerate(order)}
+    for n in order:
+        graph.nodes.append(reg.PoseGraphNode(placed[n]))
+    for a, b, e in used:  # edge: source b, target a, T_a_b maps b's frame into a's
+        info = np.eye(6) * max(float(e["inliers"]), 1.0)
+        graph.edges.append(reg.PoseGraphEdge(idx[b], idx[a], e["T_a_b"], info, uncertain=True))
+    reg.global_optimization(
+        graph,
+        reg.GlobalOptimizationLevenbergMarquardt(),
+        reg.GlobalOptimizationConvergenceCriteria(),
+        reg.GlobalOptimizationOption(
+            max_correspondence_distance=0.05, edge_prune_threshold=0.25, reference_node=0
+        ),
+    )
+    T_ref = np.linalg.inv(np.asarray(graph.nodes[0].pose))
+    return {n: T_ref @ np.asarray(graph.nodes[idx[n]].pose) for n in order}, True
+
+
 def run_merge(
     recs: list[Recording],
     out: Path,
@@ -170,6 +202,7 @@ def run_merge(
         timing["align"] = time.perf_counter() - t
     ids = [r.robot_id for r in recs]
     placed, chain = spanning_placement(ids, edges)
+    placed, optimised = optimise_poses(placed, edges, ids[0])
     report = {
         "reference": ids[0],
         "robots": {
@@ -184,6 +217,7 @@ def run_merge(
         "overlaps": overlaps,
         "fits": fits,
         "unmerged": [r for r in ids if r not in placed],
+        "pose_graph": {"edges": len(edges), "optimised": optimised},
     }
     _write_outputs(out, recs, kf_index, placed, report, voxel)
     timing["total"] = time.perf_counter() - t_all
@@ -197,9 +231,9 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
     from shared.geometry import apply
     from shared.mapcloud import views_cloud, write_ply
 
-    pts, cols = [], []
+    pts, cols, names, colours = [], [], [], []
     (out / "trajectories").mkdir(exist_ok=True)
-    tracks = {}
+    tracks, positions = {}, {}
     for k, rec in enumerate(recs):
         if rec.robot_id not in placed:
             continue
@@ -207,10 +241,16 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
         views = [load_view(rec, i) for i in kf_index[rec.robot_id]]
         cloud = views_cloud(views, voxel=voxel, with_color=False)
         p = apply(T, np.asarray(cloud.points))
+        colour = ROBOT_COLOURS[k % len(ROBOT_COLOURS)]
         pts.append(p)
-        cols.append(np.tile(ROBOT_COLOURS[k % len(ROBOT_COLOURS)], (len(p), 1)))
+        cols.append(np.tile(colour, (len(p), 1)))
+        names.append(rec.robot_id)
+        colours.append(colour)
         poses = [T @ v.T_map_cam for v in views]
         tracks[rec.robot_id] = np.array([P[:3, 3] for P in poses])
+        positions[rec.robot_id] = {
+            round(v.stamp, 6): P[:3, 3] for v, P in zip(views, poses, strict=True)
+        }
         lines = [f"# timestamp tx ty tz qx qy qz qw (global frame = {report['reference']}'s map)"]
         lines += [
             f"{v.stamp:.6f} " + " ".join(f"{x:.6f}" for x in pose_to_tum(P))
@@ -219,42 +259,78 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
         (out / "trajectories" / f"{rec.robot_id}.txt").write_text("\n".join(lines) + "\n")
     if pts:
         write_ply(out / "merged.ply", np.concatenate(pts), np.concatenate(cols))
-        _overview(
-            out / "overview.png",
-            pts,
-            tracks,
-            [r.robot_id for r in recs if r.robot_id in placed],
-            report,
-        )
+        links = []
+        for o in report["overlaps"]:
+            pa = positions.get(o["robot_a"], {}).get(round(o["stamp_a"], 6))
+            pb = positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
+            if pa is not None and pb is not None:
+                links.append((pa, pb))
+        _overview(out / "overview.png", pts, tracks, names, colours, links, report)
+    _overlap_matrix(out / "overlap_matrix.png", [r.robot_id for r in recs], report)
 
 
-def _overview(path: Path, pts, tracks, names, report) -> None:
-    """Top-down picture: map points per robot, trajectories, overlap links."""
+def _plt():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from shared.align import ROBOT_COLOURS
+    return plt
 
+
+def _overview(path: Path, pts, tracks, names, colours, links, report) -> None:
+    """Top-down picture: map points per robot, trajectories, overlap links (grey)."""
+    plt = _plt()
     allp = np.concatenate(pts)
     # view along the axis of least spread (the floor normal for a ground robot's map)
     c = allp.mean(0)
     _, V = np.linalg.eigh(np.cov((allp - c).T))
     basis = V[:, [2, 1]]
     fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
-    for k, (p, name) in enumerate(zip(pts, names, strict=True)):
+    for p, name, colour in zip(pts, names, colours, strict=True):
         uv = (p[:: max(1, len(p) // 20000)] - c) @ basis
-        ax.scatter(uv[:, 0], uv[:, 1], s=0.3, color=ROBOT_COLOURS[k % 8], alpha=0.5)
+        ax.scatter(uv[:, 0], uv[:, 1], s=0.3, color=colour, alpha=0.4)
         tr = (tracks[name] - c) @ basis
-        ax.plot(tr[:, 0], tr[:, 1], "-o", ms=2, color=ROBOT_COLOURS[k % 8] * 0.7, label=name)
+        ax.plot(tr[:, 0], tr[:, 1], "-o", ms=2, color=colour * 0.7, label=name)
+    for pa, pb in links:
+        uv = (np.stack([pa, pb]) - c) @ basis
+        ax.plot(uv[:, 0], uv[:, 1], "-", color="0.3", lw=0.6, alpha=0.6)
     ax.set_aspect("equal")
     ax.legend(loc="best")
-    n_ov = len(report["overlaps"])
     ax.set_title(
         f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
-        f"{n_ov} verified overlaps (reference {report['reference']})"
+        f"{len(report['overlaps'])} verified overlaps (grey), reference "
+        f"{report['reference']}"
     )
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _overlap_matrix(path: Path, names: list[str], report) -> None:
+    """Verified keyframe pairs between every two robots, as a matrix (thesis Fig. 1.1)."""
+    plt = _plt()
+    k = {n: i for i, n in enumerate(names)}
+    M = np.zeros((len(names), len(names)), int)
+    for o in report["overlaps"]:
+        i, j = k[o["robot_a"]], k[o["robot_b"]]
+        M[i, j] += 1
+        M[j, i] += 1
+    fig, ax = plt.subplots(figsize=(1.2 + 0.6 * len(names), 1 + 0.6 * len(names)), dpi=110)
+    ax.imshow(M, cmap="Blues")
+    for i in range(len(names)):
+        for j in range(len(names)):
+            ax.text(
+                j,
+                i,
+                str(M[i, j]),
+                ha="center",
+                va="center",
+                color="white" if M[i, j] > M.max() / 2 else "black",
+            )
+    ax.set_xticks(range(len(names)), names, rotation=45, ha="right")
+    ax.set_yticks(range(len(names)), names)
+    ax.set_title("verified pairs")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -91,3 +91,5 @@ def test_merge_simulated_three_robot_fleet(tmp_path, capsys):
     pairs = {(o["robot_a"], o["robot_b"]) for o in report["overlaps"]}
     assert len({frozenset(p) for p in pairs}) == 3  # every pair of robots overlaps
     assert (out / "trajectories" / "robot2.txt").is_file()
+    assert (out / "overlap_matrix.png").stat().st_size > 5_000
+    assert report["pose_graph"] == {"edges": 3, "optimised": True}  # a cycle: optimised
