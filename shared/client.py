@@ -132,6 +132,28 @@ def _png(img) -> bytes:
     return buf.tobytes()
 
 
+def align_request(pairs, **options) -> dict:
+    """The multipart parts of a `POST /align` (see services/aligner/schemas.py): keyword
+    arguments `data` (the JSON `meta` field) and `files` (PNG colour and depth per view).
+    options: method, cloud, colour."""
+    import json
+
+    meta = {"pairs": [], **options}
+    files = {}
+    for i, (a, b) in enumerate(pairs):
+        item = {}
+        for side, v in (("a", a), ("b", b)):
+            item[side] = {
+                "stamp": v.stamp,
+                "T_map_cam": v.T_map_cam.tolist(),
+                "intrinsics": v.intrinsics.to_dict(),
+            }
+            files[f"{side}{i}_rgb"] = (f"{side}{i}_rgb.png", _png(v.rgb), "image/png")
+            files[f"{side}{i}_depth"] = (f"{side}{i}_depth.png", _png(v.depth), "image/png")
+        meta["pairs"].append(item)
+    return {"data": {"meta": json.dumps(meta)}, "files": files}
+
+
 class AlignerClient(_Client):
     """Client of the aligner service."""
 
@@ -139,24 +161,8 @@ class AlignerClient(_Client):
         self, pairs, method: str = "default", cloud: bool = False, colour: str = "robot"
     ) -> dict:
         """pairs: list of (RGBDView of robot A, RGBDView of robot B)."""
-        import json
-
-        meta = {"pairs": [], "method": method, "cloud": cloud, "colour": colour}
-        files = []
-        for i, (a, b) in enumerate(pairs):
-            item = {}
-            for side, v in (("a", a), ("b", b)):
-                item[side] = {
-                    "stamp": v.stamp,
-                    "T_map_cam": v.T_map_cam.tolist(),
-                    "intrinsics": v.intrinsics.to_dict(),
-                }
-                files.append((f"{side}{i}_rgb", (f"{side}{i}_rgb.png", _png(v.rgb), "image/png")))
-                files.append(
-                    (f"{side}{i}_depth", (f"{side}{i}_depth.png", _png(v.depth), "image/png"))
-                )
-            meta["pairs"].append(item)
-        return self._call("POST", "/align", data={"meta": json.dumps(meta)}, files=files).json()
+        parts = align_request(pairs, method=method, cloud=cloud, colour=colour)
+        return self._call("POST", "/align", **parts).json()
 
     def cloud(self, cloud_id: str) -> bytes:
         return self._call("GET", f"/clouds/{cloud_id}").content

@@ -9,6 +9,7 @@ from fastapi.testclient import TestClient
 
 from services.aligner.config import Settings
 from services.aligner.main import create_app
+from shared.client import align_request
 from shared.geometry import transform_error
 from tests.test_align import tum_two_robots  # noqa: F401  (fixture)
 
@@ -20,20 +21,7 @@ def client():
 
 
 def _request(pairs, **meta_kw):
-    meta = {"pairs": [], **meta_kw}
-    files = {}
-    for i, (a, b) in enumerate(pairs):
-        item = {}
-        for side, v in (("a", a), ("b", b)):
-            item[side] = {
-                "stamp": v.stamp,
-                "T_map_cam": v.T_map_cam.tolist(),
-                "intrinsics": v.intrinsics.to_dict(),
-            }
-            files[f"{side}{i}_rgb"] = ("x.png", cv2.imencode(".png", v.rgb)[1].tobytes())
-            files[f"{side}{i}_depth"] = ("x.png", cv2.imencode(".png", v.depth)[1].tobytes())
-        meta["pairs"].append(item)
-    return {"data": {"meta": json.dumps(meta)}, "files": files}
+    return align_request(pairs, **meta_kw)
 
 
 def test_align_returns_the_transform_and_a_merged_ply(client, tum_two_robots):  # noqa: F811
