@@ -104,11 +104,16 @@ class PlaceDBClient(_Client):
 
     def overlaps(self, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
         return self._call(
-            "GET", "/overlaps", params={"robot_a": robot_a, "robot_b": robot_b, "wait": wait}
+            "GET",
+            "/overlaps",
+            params={"robot_a": robot_a, "robot_b": robot_b, "wait": wait},
+            timeout=wait + 60,
         ).json()["overlaps"]
 
     def overlap_graph(self, wait: float = 0.0) -> list[dict]:
-        return self._call("GET", "/overlaps", params={"wait": wait}).json()["graph"]
+        return self._call("GET", "/overlaps", params={"wait": wait}, timeout=wait + 60).json()[
+            "graph"
+        ]
 
     def frame(self, kf_id: int) -> bytes:
         return self._call("GET", f"/keyframes/{kf_id}/frame").content

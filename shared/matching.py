@@ -95,13 +95,16 @@ def verify_pair(
     n = len(ia)
     if n < params.min_matches:
         return Verification(n, 0, ia, ib, False, 1000 * (t1 - t0))
-    _, mask = cv2.findFundamentalMat(
-        kp_a[ia].astype(np.float64),
-        kp_b[ib].astype(np.float64),
-        cv2.USAC_MAGSAC,
-        params.ransac_px,
-        params.confidence,
-    )
+    try:
+        _, mask = cv2.findFundamentalMat(
+            kp_a[ia].astype(np.float64),
+            kp_b[ib].astype(np.float64),
+            cv2.USAC_MAGSAC,
+            params.ransac_px,
+            params.confidence,
+        )
+    except cv2.error:  # USAC asserts on some degenerate samples: that is "not verified"
+        mask = None
     ms = 1000 * (t1 - t0), 1000 * (time.perf_counter() - t1)
     if mask is None:
         return Verification(n, 0, ia, ib, False, *ms)

@@ -47,3 +47,19 @@ def test_blank_image_gives_no_features_and_bad_dtype_is_rejected():
     assert len(detect_and_describe(np.full((240, 320), 128, np.uint8))) == 0
     with pytest.raises(BadInput, match="uint8"):
         detect_and_describe(np.zeros((240, 320), np.float32))
+
+
+def test_verification_treats_an_estimator_failure_as_unverified(monkeypatch):
+    """OpenCV's USAC asserts on some degenerate samples (seen on a simulated 8-robot fleet):
+    that must mean "not verified", never an exception out of a query or the worker."""
+    from shared import matching
+
+    def boom(*args, **kwargs):
+        raise cv2.error("OpenCV(5.0.0) error: (-215:Assertion failed) !model.empty()")
+
+    monkeypatch.setattr(matching.cv2, "findFundamentalMat", boom)
+    rng = np.random.default_rng(0)
+    desc = rng.integers(0, 255, (40, 128)).astype(np.uint8)
+    kp = rng.uniform(0, 300, (40, 2)).astype(np.float32)
+    v = matching.verify_pair(kp, desc, kp, desc)
+    assert v.matches == 40 and not v.verified and v.inliers == 0
