@@ -29,7 +29,8 @@ def main() -> None:
     work = args.workdir or Path(tempfile.mkdtemp(prefix="fleetmap-fleet-"))
     sim, out = work / "fleet", work / "out"
     t = time.perf_counter()
-    cli(["simulate", str(sim), "--robots", str(args.robots), "--frames", str(args.frames)])
+    if not (sim / "T_true.json").is_file():  # reuse a fleet already rendered in --workdir
+        cli(["simulate", str(sim), "--robots", str(args.robots), "--frames", str(args.frames)])
     t_sim = time.perf_counter() - t
     truth = json.loads((sim / "T_true.json").read_text())
     t = time.perf_counter()
