@@ -240,11 +240,6 @@ def _unique(pairs, side: int):
     return out
 
 
-def affine_of(T: np.ndarray, mlp: MLPEstimator | None, X: np.ndarray) -> np.ndarray:
-    """The 4x4 to report: T itself, or the MLP's best affine approximation on X."""
-    return T if mlp is None else fit_affine(X, mlp.transform(X))
-
-
 ROBOT_COLOURS = np.array(
     [
         [0.85, 0.25, 0.2],
