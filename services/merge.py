@@ -90,7 +90,10 @@ def spanning_placement(
 
 
 def optimise_poses(
-    placed: dict[str, np.ndarray], edges: dict[tuple[str, str], dict], reference: str
+    placed: dict[str, np.ndarray],
+    edges: dict[tuple[str, str], dict],
+    reference: str,
+    chain: dict[str, list[str]] | None = None,
 ) -> tuple[dict[str, np.ndarray], bool]:
     """Pose-graph optimisation (Open3D) when the merged edges form cycles; the spanning
     tree's placement is the initial guess and the reference robot stays fixed."""
@@ -106,9 +109,15 @@ def optimise_poses(
     idx = {n: k for k, n in enumerate(order)}
     for n in order:
         graph.nodes.append(reg.PoseGraphNode(placed[n]))
+    # spanning-tree links are the certain backbone; the links closing cycles may be pruned
+    tree = {frozenset(c[-2:]) for c in (chain or {}).values() if len(c) >= 2}
     for a, b, e in used:  # edge: source b, target a, T_a_b maps b's frame into a's
         info = np.eye(6) * max(float(e["inliers"]), 1.0)
-        graph.edges.append(reg.PoseGraphEdge(idx[b], idx[a], e["T_a_b"], info, uncertain=True))
+        graph.edges.append(
+            reg.PoseGraphEdge(
+                idx[b], idx[a], e["T_a_b"], info, uncertain=frozenset((a, b)) not in tree
+            )
+        )
     reg.global_optimization(
         graph,
         reg.GlobalOptimizationLevenbergMarquardt(),
@@ -202,7 +211,7 @@ def run_merge(
         timing["align"] = time.perf_counter() - t
     ids = [r.robot_id for r in recs]
     placed, chain = spanning_placement(ids, edges)
-    placed, optimised = optimise_poses(placed, edges, ids[0])
+    placed, optimised = optimise_poses(placed, edges, ids[0], chain)
     report = {
         "reference": ids[0],
         "robots": {
