@@ -241,26 +241,35 @@ def cmd_align(args: argparse.Namespace) -> int:
     import json
 
     from shared.client import AlignerClient, PlaceDBClient
-    from shared.pairs import load_view, select_pairs
+    from shared.extract import keyframe_indices
+    from shared.pairs import load_view, select_views
 
     rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
     with PlaceDBClient(args.place_db, token=args.token) as db:
         overlaps = db.overlaps(rec_a.robot_id, rec_b.robot_id, wait=args.wait)
-    pairs = select_pairs(overlaps, rec_a, rec_b, max_pairs=args.max_pairs)
-    if not pairs:
+    ia, ib = select_views(
+        overlaps,
+        rec_a,
+        rec_b,
+        keyframe_indices(rec_a, _policy(args)),
+        keyframe_indices(rec_b, _policy(args)),
+        args.max_views,
+    )
+    if not ia:
         out = {
             "merged": False,
             "reason": f"no verified overlap between {rec_a.robot_id} and {rec_b.robot_id}",
         }
     else:
-        views = [(load_view(rec_a, i), load_view(rec_b, j)) for i, j in pairs]
+        va, vb = [load_view(rec_a, i) for i in ia], [load_view(rec_b, j) for j in ib]
+        views = [(x, y) for x in va for y in vb]
         with AlignerClient(args.aligner, timeout=600, token=args.token) as aligner:
             res = aligner.align(views, method=args.method)
         out = {
             "merged": res["merged"],
             "robot_a": rec_a.robot_id,
             "robot_b": rec_b.robot_id,
-            "pairs": len(views),
+            "views": [len(va), len(vb)],
             **res,
         }
         if not res["merged"]:
@@ -290,7 +299,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
     out = Path(args.out)
     report = run_merge(
-        recs, out, _policy(args), args.vocab, args.place_db, args.aligner, max_pairs=args.max_pairs
+        recs, out, _policy(args), args.vocab, args.place_db, args.aligner, max_views=args.max_views
     )
     merged = [r for r in ids if r not in report["unmerged"]]
     print(
@@ -392,9 +401,10 @@ def build_parser() -> argparse.ArgumentParser:
         default="default",
         choices=["default", "rigid", "similarity", "affine", "mlp", "icp"],
     )
-    p.add_argument("--max-pairs", type=int, default=24)
+    p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
     p.add_argument("--wait", type=float, default=120.0)
     _add_camera_args(p)
+    _add_keyframe_args(p)
     p.set_defaults(func=cmd_align)
 
     p = sub.add_parser("merge", help="the main job: merge N robots' maps into one")
@@ -403,7 +413,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--place-db", metavar="URL", help="default: start one in-process")
     p.add_argument("--aligner", metavar="URL", help="default: start one in-process")
     p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
-    p.add_argument("--max-pairs", type=int, default=24)
+    p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
     _add_camera_args(p)
     _add_keyframe_args(p)
     p.set_defaults(func=cmd_merge)

@@ -25,7 +25,7 @@ from shared.client import AlignerClient, PlaceDBClient
 from shared.dataset import Recording
 from shared.extract import FrameExtractor, keyframe_indices
 from shared.geometry import pose_to_tum
-from shared.pairs import load_view, select_pairs
+from shared.pairs import load_view, select_views
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +137,7 @@ def run_merge(
     vocab_path=None,
     place_db: str | None = None,
     aligner: str | None = None,
-    max_pairs: int = 24,
+    max_views: int = 12,
     voxel: float = 0.03,
     quiet: bool = False,
     token: str | None = None,
@@ -193,16 +193,20 @@ def run_merge(
         edges, fits = {}, []
         recs_by_id = {r.robot_id: r for r in recs}
         for (a, b), pairs in tqdm(by_pair.items(), desc="align", unit="pair", disable=quiet):
-            sel = select_pairs(pairs, recs_by_id[a], recs_by_id[b], max_pairs=max_pairs)
-            if not sel:
+            ia, ib = select_views(
+                pairs, recs_by_id[a], recs_by_id[b], kf_index[a], kf_index[b], max_views
+            )
+            if not ia:
                 continue
-            views = [(load_view(recs_by_id[a], i), load_view(recs_by_id[b], j)) for i, j in sel]
+            va = [load_view(recs_by_id[a], i) for i in ia]
+            vb = [load_view(recs_by_id[b], j) for j in ib]
+            views = [(x, y) for x in va for y in vb]
             res = al.align(views)
             fits.append(
                 {
                     "robot_a": a,
                     "robot_b": b,
-                    "pairs": len(views),
+                    "views": [len(va), len(vb)],
                     **{k: v for k, v in res.items() if k != "hypotheses"},
                 }
             )

@@ -140,22 +140,30 @@ def _png(img) -> bytes:
 def align_request(pairs, **options) -> dict:
     """The multipart parts of a `POST /align` (see services/aligner/schemas.py): keyword
     arguments `data` (the JSON `meta` field) and `files` (PNG colour and depth per view).
+    The indexed layout: a view object in several pairs is sent once.
     options: method, cloud, colour."""
     import json
 
-    meta = {"pairs": [], **options}
+    meta = {"pairs": [], "views_a": [], "views_b": [], **options}
     files = {}
-    for i, (a, b) in enumerate(pairs):
-        item = {}
-        for side, v in (("a", a), ("b", b)):
-            item[side] = {
-                "stamp": v.stamp,
-                "T_map_cam": v.T_map_cam.tolist(),
-                "intrinsics": v.intrinsics.to_dict(),
-            }
-            files[f"{side}{i}_rgb"] = (f"{side}{i}_rgb.png", _png(v.rgb), "image/png")
-            files[f"{side}{i}_depth"] = (f"{side}{i}_depth.png", _png(v.depth), "image/png")
-        meta["pairs"].append(item)
+    index: list[dict[int, int]] = [{}, {}]
+    for a, b in pairs:
+        ij = []
+        for k, (side, v) in enumerate((("a", a), ("b", b))):
+            seen = index[k]
+            if id(v) not in seen:
+                i = seen[id(v)] = len(seen)
+                meta[f"views_{side}"].append(
+                    {
+                        "stamp": v.stamp,
+                        "T_map_cam": v.T_map_cam.tolist(),
+                        "intrinsics": v.intrinsics.to_dict(),
+                    }
+                )
+                files[f"{side}{i}_rgb"] = (f"{side}{i}_rgb.png", _png(v.rgb), "image/png")
+                files[f"{side}{i}_depth"] = (f"{side}{i}_depth.png", _png(v.depth), "image/png")
+            ij.append(seen[id(v)])
+        meta["pairs"].append(ij)
     return {"data": {"meta": json.dumps(meta)}, "files": files}
 
 

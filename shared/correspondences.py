@@ -17,7 +17,7 @@ from shared.camera import Intrinsics, backproject_pixels
 from shared.errors import BadInput
 from shared.features import FeatureParams, LocalFeatures, detect_and_describe
 from shared.geometry import apply, check_transform
-from shared.matching import MatchParams, verify_pair
+from shared.matching import MatchParams, match_descriptors, verify_pair
 
 ALIGN_FEATURES = FeatureParams(max_features=1000, min_mser_features=400)
 ALIGN_MATCH = MatchParams(ratio=0.85, min_inliers=8, min_inlier_ratio=0.0)
@@ -110,4 +110,26 @@ def pooled_correspondences(pairs: list[tuple[RGBDView, RGBDView]]) -> Correspond
 
     return Correspondences.concat(
         [pair_correspondences(a, b, i, feats(a), feats(b)) for i, (a, b) in enumerate(pairs)]
+    )
+
+
+def raw_correspondences(
+    a: RGBDView,
+    b: RGBDView,
+    fa: LocalFeatures,
+    fb: LocalFeatures,
+    index: int = 0,
+    ratio: float = 0.9,
+) -> Correspondences:
+    """Mutual ratio-test matches of one pair lifted to 3D, without an epipolar filter.
+
+    Across wide baselines (robots 60-90 degrees apart) the epipolar RANSAC keeps too few
+    right matches; a rigid RANSAC in 3D on these raw matches, judged by geometry, does
+    better (see `shared.align`)."""
+    ia, ib = match_descriptors(fa.descriptors, fb.descriptors, ratio)
+    pa, va = backproject_pixels(fa.keypoints[ia], a.depth, a.intrinsics)
+    pb, vb = backproject_pixels(fb.keypoints[ib], b.depth, b.intrinsics)
+    ok = va & vb
+    return Correspondences(
+        apply(b.T_map_cam, pb[ok]), apply(a.T_map_cam, pa[ok]), np.full(int(ok.sum()), index)
     )

@@ -83,3 +83,38 @@ def ply_bytes(points: np.ndarray, colors: np.ndarray | None = None) -> bytes:
         path = Path(d) / "cloud.ply"
         write_ply(path, points, colors)
         return path.read_bytes()
+
+
+def free_space_check(
+    points: np.ndarray, views: Iterable, margin: float = 0.05, rel_margin: float = 0.02
+) -> tuple[int, int]:
+    """How well points (N, 3), in the views' map frame, agree with what the views' depth saw.
+
+    Each point is projected into each view. Where that view measured a surface at about the
+    point's depth (within `margin` + `rel_margin` x depth) the point is supported; where
+    the view saw farther, through the point, the point sits in space the camera saw empty:
+    a conflict. Points behind the measured surface or outside the image tell nothing.
+    A wrong alignment of two maps of a look-alike room overlaps surfaces in places but puts
+    others in seen-empty space; a right one has few conflicts (Huber and Hebert's
+    free-space test). Returns (supports, conflicts) summed over views.
+    """
+    support = conflict = 0
+    pts = np.asarray(points, np.float64)
+    for v in views:
+        K = v.intrinsics
+        T = np.linalg.inv(v.T_map_cam)
+        p = pts @ T[:3, :3].T + T[:3, 3]
+        z = p[:, 2]
+        front = z > 0.1
+        zs = np.where(front, z, 1.0)
+        u = np.round(K.fx * p[:, 0] / zs + K.cx).astype(np.int64)
+        w = np.round(K.fy * p[:, 1] / zs + K.cy).astype(np.int64)
+        h, wd = v.depth.shape
+        ok = front & (u >= 0) & (u < wd) & (w >= 0) & (w < h)
+        d = np.zeros(len(p))
+        d[ok] = v.depth[w[ok], u[ok]] / K.depth_scale
+        ok &= d > 0
+        tol = margin + rel_margin * d
+        support += int(np.count_nonzero(ok & (np.abs(z - d) <= tol)))
+        conflict += int(np.count_nonzero(ok & (z < d - tol)))
+    return support, conflict

@@ -73,10 +73,35 @@ def test_bad_requests_answer_4xx(client, tum_two_robots):  # noqa: F811
     assert client.post("/align", **req).status_code == 422
     req = _request(pairs)
     meta = json.loads(req["data"]["meta"])
-    meta["pairs"][0]["a"]["T_map_cam"] = [[1, 0], [0, 1]]
+    meta["views_a"][0]["T_map_cam"] = [[1, 0], [0, 1]]
     req["data"]["meta"] = json.dumps(meta)
     r = client.post("/align", **req)
     assert r.status_code == 422 and "4x4" in r.json()["detail"]
+    # index pairs pointing outside the views, or without views
+    meta = json.loads(_request(pairs)["data"]["meta"])
+    meta["pairs"] = [[0, 7]]
+    req["data"]["meta"] = json.dumps(meta)
+    r = client.post("/align", **req)
+    assert r.status_code == 422 and "outside views_a (1) or views_b (1)" in r.json()["detail"]
+    meta["views_a"] = meta["views_b"] = []
+    meta["pairs"] = [[0, 0]]
+    req["data"]["meta"] = json.dumps(meta)
+    r = client.post("/align", **req)
+    assert r.status_code == 422 and "need views_a and views_b" in r.json()["detail"]
+
+
+def test_inline_pair_layout_still_accepted(client, tum_two_robots):  # noqa: F811
+    """Pairs carrying their own view metadata, files per pair (the first layout)."""
+    pairs, T_true = tum_two_robots
+    req = _request(pairs)
+    meta = json.loads(req["data"]["meta"])
+    meta["pairs"] = [{"a": meta["views_a"][i], "b": meta["views_b"][j]} for i, j in meta["pairs"]]
+    del meta["views_a"], meta["views_b"]
+    req["data"]["meta"] = json.dumps(meta)
+    r = client.post("/align", **req)
+    assert r.status_code == 200, r.text
+    dt, dr = transform_error(np.array(r.json()["transform"]), T_true)
+    assert dt < 0.05 and dr < 2.0
     assert client.get("/clouds/nope").status_code == 404
 
 

@@ -31,6 +31,18 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):
     assert len(traj) == 2 and traj[1].startswith("1305031102.275800")
 
 
+def test_merge_sun3d_pair_recovers_ground_truth(sun3d, tmp_path, capsys):
+    """Two real robots, wide baseline, self-similar room (issue 5's real-data target)."""
+    out = tmp_path / "out"
+    args = ["merge", f"A={sun3d / 'robot_a'}", f"B={sun3d / 'robot_b'}", "--out", str(out)]
+    assert main(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["unmerged"] == [], report["fits"]
+    dt, dr = transform_error(np.array(report["transforms"]["B"]), np.loadtxt(sun3d / "T_a_b.txt"))
+    assert dt < 0.05 and dr < 2.0, (dt, dr)
+    assert report["fits"][0]["method"].startswith("rigid+icp")
+
+
 def test_merge_reports_bad_input(tmp_path, capsys):
     assert (
         main(

@@ -19,7 +19,8 @@ class Settings(BaseSettings):
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = 256 * 1024 * 1024
-    max_pairs: int = 32
+    max_views: int = 32  # per robot in one request
+    max_pairs: int = 512
     max_image_pixels: int = 4096 * 4096
     cloud_cache: int = 8  # merged clouds kept for GET /clouds/{id}
     ransac_tol_m: float = _P.ransac_tol_m

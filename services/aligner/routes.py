@@ -43,27 +43,29 @@ async def _decode(form, name: str, depth: bool, max_pixels: int) -> np.ndarray:
     return img
 
 
+async def _view(form, name: str, vm: s.ViewMeta, max_pixels: int) -> RGBDView:
+    rgb = await _decode(form, f"{name}_rgb", False, max_pixels)
+    depth = await _decode(form, f"{name}_depth", True, max_pixels)
+    try:
+        return RGBDView(
+            rgb, depth, Intrinsics(**vm.intrinsics.model_dump()), np.array(vm.T_map_cam), vm.stamp
+        )
+    except BadInput as exc:
+        raise BadInput(f"view {name}: {exc}") from exc
+
+
 async def _views(form, meta: s.AlignMeta, max_pixels: int) -> list[tuple[RGBDView, RGBDView]]:
-    pairs = []
-    for i, pm in enumerate(meta.pairs):
-        views = []
-        for side, vm in (("a", pm.a), ("b", pm.b)):
-            rgb = await _decode(form, f"{side}{i}_rgb", False, max_pixels)
-            depth = await _decode(form, f"{side}{i}_depth", True, max_pixels)
-            try:
-                views.append(
-                    RGBDView(
-                        rgb,
-                        depth,
-                        Intrinsics(**vm.intrinsics.model_dump()),
-                        np.array(vm.T_map_cam),
-                        vm.stamp,
-                    )
-                )
-            except BadInput as exc:
-                raise BadInput(f"pair {i}, view {side}: {exc}") from exc
-        pairs.append(tuple(views))
-    return pairs
+    if meta.views_a:  # indexed layout: each view once
+        va = [await _view(form, f"a{i}", vm, max_pixels) for i, vm in enumerate(meta.views_a)]
+        vb = [await _view(form, f"b{j}", vm, max_pixels) for j, vm in enumerate(meta.views_b)]
+        return [(va[i], vb[j]) for i, j in meta.pairs]
+    return [
+        (
+            await _view(form, f"a{i}", pm.a, max_pixels),
+            await _view(form, f"b{i}", pm.b, max_pixels),
+        )
+        for i, pm in enumerate(meta.pairs)
+    ]
 
 
 @router.post(
@@ -80,13 +82,16 @@ async def align(request: Request) -> s.AlignAnswer:
         raise PayloadTooLarge(
             f"Body of {declared} bytes exceeds the {st.max_body_bytes}-byte limit"
         )
-    form = await request.form(max_files=4 * st.max_pairs, max_fields=8)
+    form = await request.form(max_files=4 * st.max_views, max_fields=8)
     try:
         meta = s.AlignMeta.model_validate(json.loads(form.get("meta") or "null"))
     except (ValidationError, json.JSONDecodeError, TypeError) as exc:
         raise BadInput(f"Bad 'meta' field: {exc}") from exc
     if len(meta.pairs) > st.max_pairs:
         raise BadInput(f"At most {st.max_pairs} pairs, got {len(meta.pairs)}")
+    n_views = max(len(meta.views_a), len(meta.views_b)) or len(meta.pairs)
+    if n_views > st.max_views:
+        raise BadInput(f"At most {st.max_views} views per robot, got {n_views}")
     pairs = await _views(form, meta, st.max_image_pixels)
     result, cloud = await run_in_threadpool(
         align_request, pairs, meta.method, st.params(), meta.cloud, meta.colour

@@ -1,15 +1,22 @@
 """Aligner request metadata and response bodies.
 
 `POST /align` takes `multipart/form-data`: a `meta` field holding `AlignMeta` as JSON, and
-for each pair i the files `a{i}_rgb`, `a{i}_depth`, `b{i}_rgb`, `b{i}_depth` (PNG or any
-image OpenCV decodes; depth 16-bit single channel, metres = value / depth_scale).
+image files (PNG or any image OpenCV decodes; depth 16-bit single channel, metres =
+value / depth_scale), in one of two layouts:
+
+- indexed (what the client sends): `views_a` and `views_b` list each robot's views once,
+  `pairs` lists index pairs `[i, j]` (view i of A matched with view j of B), and the files
+  are `a{i}_rgb`, `a{i}_depth` for view i of A, `b{j}_rgb`, `b{j}_depth` for view j of B.
+  A view in many pairs is sent and processed once.
+- inline: no `views_a`/`views_b`; `pairs` holds `{"a": view, "b": view}` objects and the
+  files `a{i}_*`, `b{i}_*` belong to pair i.
 """
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 
 class IntrinsicsIn(BaseModel):
@@ -41,10 +48,31 @@ class PairMeta(BaseModel):
 
 
 class AlignMeta(BaseModel):
-    pairs: list[PairMeta] = Field(min_length=1)
+    pairs: list[PairMeta] | list[tuple[int, int]] = Field(min_length=1)
+    views_a: list[ViewMeta] = []
+    views_b: list[ViewMeta] = []
     method: Literal["default", "rigid", "similarity", "affine", "mlp", "icp"] = "default"
     cloud: bool = False
     colour: Literal["robot", "image"] = "robot"
+
+    @model_validator(mode="after")
+    def _layout(self):
+        indexed = bool(self.views_a or self.views_b)
+        if indexed:
+            if not (self.views_a and self.views_b):
+                raise ValueError("give both views_a and views_b, or neither")
+            for k, pr in enumerate(self.pairs):
+                if not isinstance(pr, tuple):
+                    raise ValueError("with views_a/views_b, pairs are index pairs [i, j]")
+                i, j = pr
+                if not (0 <= i < len(self.views_a) and 0 <= j < len(self.views_b)):
+                    raise ValueError(
+                        f"pair {k} = [{i}, {j}] outside views_a ({len(self.views_a)}) "
+                        f"or views_b ({len(self.views_b)})"
+                    )
+        elif not isinstance(self.pairs[0], PairMeta):
+            raise ValueError("index pairs need views_a and views_b")
+        return self
 
 
 class AlignAnswer(BaseModel):
