@@ -399,7 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         default="default",
-        choices=["default", "rigid", "similarity", "affine", "mlp", "icp"],
+        choices=["default", "rigid", "similarity", "affine", "mlp", "icp", "fpfh"],
     )
     p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
     p.add_argument("--wait", type=float, default=120.0)

@@ -246,7 +246,7 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
 
     pts, cols, names, colours = [], [], [], []
     (out / "trajectories").mkdir(exist_ok=True)
-    tracks, positions = {}, {}
+    tracks, positions, downs = {}, {}, []
     for k, rec in enumerate(recs):
         if rec.robot_id not in placed:
             continue
@@ -261,6 +261,7 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
         colours.append(colour)
         poses = [T @ v.T_map_cam for v in views]
         tracks[rec.robot_id] = np.array([P[:3, 3] for P in poses])
+        downs.extend(P[:3, 1] for P in poses)  # each camera's image-down axis
         positions[rec.robot_id] = {
             round(v.stamp, 6): P[:3, 3] for v, P in zip(views, poses, strict=True)
         }
@@ -278,7 +279,7 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
             pb = positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
             if pa is not None and pb is not None:
                 links.append((pa, pb))
-        _overview(out / "overview.png", pts, tracks, names, colours, links, report)
+        _overview(out / "overview.png", pts, tracks, names, colours, links, report, downs)
     _overlap_matrix(out / "overlap_matrix.png", [r.robot_id for r in recs], report)
 
 
@@ -291,14 +292,28 @@ def _plt():
     return plt
 
 
-def _overview(path: Path, pts, tracks, names, colours, links, report) -> None:
+def _top_down_basis(points: np.ndarray, downs) -> np.ndarray:
+    """Two axes (3, 2) spanning the floor plane. Gravity: the mean image-down axis of the
+    cameras, when they agree (upright cameras on robots or in hands); otherwise the
+    points' axis of least spread."""
+    c = points - points.mean(0)
+    down = np.mean(downs, axis=0) if len(downs) else np.zeros(3)
+    if np.linalg.norm(down) > 0.5:
+        g = down / np.linalg.norm(down)
+        flat = c - np.outer(c @ g, g)
+        _, V = np.linalg.eigh(np.cov(flat.T))
+        u = V[:, 2]
+        return np.stack([u, np.cross(g, u)], axis=1)
+    _, V = np.linalg.eigh(np.cov(c.T))
+    return V[:, [2, 1]]
+
+
+def _overview(path: Path, pts, tracks, names, colours, links, report, downs=()) -> None:
     """Top-down picture: map points per robot, trajectories, overlap links (grey)."""
     plt = _plt()
     allp = np.concatenate(pts)
-    # view along the axis of least spread (the floor normal for a ground robot's map)
     c = allp.mean(0)
-    _, V = np.linalg.eigh(np.cov((allp - c).T))
-    basis = V[:, [2, 1]]
+    basis = _top_down_basis(allp, downs)
     fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
     for p, name, colour in zip(pts, names, colours, strict=True):
         uv = (p[:: max(1, len(p) // 20000)] - c) @ basis

@@ -409,6 +409,17 @@ def baseline(pairs, method: str, p: AlignParams) -> AlignResult:
     from shared.estimators import AffineEstimator, RigidEstimator, SimilarityEstimator
 
     t0 = time.perf_counter()
+    if method == "fpfh":
+        va, vb = [a for a, _ in _unique(pairs, 0)], [b for _, b in _unique(pairs, 1)]
+        T, fit = fpfh_ransac_icp(va, vb)
+        return AlignResult(
+            True,
+            "FPFH + RANSAC + point-to-plane ICP on the depth clouds (no gate)",
+            T,
+            "fpfh",
+            fitness=fit,
+            seconds=time.perf_counter() - t0,
+        )
     if method == "icp":
         ca = views_cloud([a for a, _ in _unique(pairs, 0)], voxel=p.voxel_m)
         cb = views_cloud([b for _, b in _unique(pairs, 1)], voxel=p.voxel_m)
@@ -451,6 +462,35 @@ def baseline(pairs, method: str, p: AlignParams) -> AlignResult:
             seconds=time.perf_counter() - t0,
         )
     raise BadInput(f"Unknown method {method!r}")
+
+
+def fpfh_ransac_icp(views_a, views_b, voxel: float = 0.05, seed: int = 0):
+    """The purely geometric recipe of the ROS map_merge_3d tool, with Open3D: fused depth
+    clouds, FPFH features, feature-matching RANSAC, point-to-plane ICP. No images used.
+    Returns (T_a_b, overlap fitness)."""
+    import open3d as o3d
+
+    o3d.utility.random.seed(seed)
+    ca, cb = views_cloud(views_a, voxel=voxel), views_cloud(views_b, voxel=voxel)
+    param = o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+    fa, fb = REG.compute_fpfh_feature(ca, param), REG.compute_fpfh_feature(cb, param)
+    r = REG.registration_ransac_based_on_feature_matching(
+        cb,
+        ca,
+        fb,
+        fa,
+        True,
+        1.5 * voxel,
+        REG.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            REG.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+        ],
+        REG.RANSACConvergenceCriteria(100_000, 0.999),
+    )
+    T, fit, _ = icp(cb, ca, r.transformation, distances=(2 * voxel, voxel, 0.6 * voxel))
+    return T, fit
 
 
 def merged_cloud(

@@ -51,7 +51,7 @@ class AlignMeta(BaseModel):
     pairs: list[PairMeta] | list[tuple[int, int]] = Field(min_length=1)
     views_a: list[ViewMeta] = []
     views_b: list[ViewMeta] = []
-    method: Literal["default", "rigid", "similarity", "affine", "mlp", "icp"] = "default"
+    method: Literal["default", "rigid", "similarity", "affine", "mlp", "icp", "fpfh"] = "default"
     cloud: bool = False
     colour: Literal["robot", "image"] = "robot"
 
