@@ -83,10 +83,14 @@ def ransac_rigid(
         R, t = _batch_kabsch(s[ok], d[ok])
         for lo in range(0, len(R), 256):  # bound memory: 256 hypotheses x N points
             pred = np.einsum("hij,nj->hni", R[lo : lo + 256], src) + t[lo : lo + 256, None]
-            inl = np.linalg.norm(pred - dst[None], axis=2) < tol
+            inl = ((pred - dst[None]) ** 2).sum(2) < tol * tol
             k = inl.sum(1).argmax()
             if inl[k].sum() > best.sum():
                 best = inl[k]
+            # adaptive stop: enough samples for a 99.9% chance of one all-inlier triplet
+            w = best.sum() / n
+            if w > 0 and lo + 256 >= np.log(1e-3) / np.log(max(1 - w**3, 1e-12)):
+                break
     if best.sum() < 3:
         return np.eye(4), np.zeros(n, bool)
     T = kabsch(src[best], dst[best])
