@@ -185,8 +185,10 @@ def run_merge(
                         "robot_b": p["robot_b"],
                         "stamp_b": p["stamp_b"],
                         "inliers": p["inliers"],
+                        "source": p["source"],
                     }
                     for p in pairs
+                    if p["source"] == "cascade"  # link pairs are listed after aligning
                 ]
         timing["overlaps"] = time.perf_counter() - t
         t = time.perf_counter()
@@ -212,6 +214,13 @@ def run_merge(
             )
             if res["merged"]:
                 edges[(a, b)] = {"T_a_b": np.array(res["transform"]), "inliers": res["inliers"]}
+                # the place database records the keyframe pairs co-visible under it
+                fits[-1]["link_overlaps"] = db.put_link(a, b, res["transform"])
+        for a, b in edges:
+            overlaps += [
+                {k: p[k] for k in ("robot_a", "stamp_a", "robot_b", "stamp_b", "inliers", "source")}
+                for p in db.overlaps(a, b, source="link")
+            ]
         timing["align"] = time.perf_counter() - t
     ids = [r.robot_id for r in recs]
     placed, chain = spanning_placement(ids, edges)
@@ -275,12 +284,18 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
         write_ply(out / "merged.ply", np.concatenate(pts), np.concatenate(cols))
         links = []
         for o in report["overlaps"]:
+            if o.get("source", "cascade") != "cascade":
+                continue
             pa = positions.get(o["robot_a"], {}).get(round(o["stamp_a"], 6))
             pb = positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
             if pa is not None and pb is not None:
                 links.append((pa, pb))
         _overview(out / "overview.png", pts, tracks, names, colours, links, report, downs)
     _overlap_matrix(out / "overlap_matrix.png", [r.robot_id for r in recs], report)
+
+
+def _n_cascade(report) -> int:
+    return sum(o.get("source", "cascade") == "cascade" for o in report["overlaps"])
 
 
 def _plt():
@@ -327,7 +342,7 @@ def _overview(path: Path, pts, tracks, names, colours, links, report, downs=()) 
     ax.legend(loc="best")
     ax.set_title(
         f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
-        f"{len(report['overlaps'])} verified overlaps (grey), reference "
+        f"{_n_cascade(report)} verified overlaps (grey), reference "
         f"{report['reference']}"
     )
     fig.tight_layout()

@@ -102,13 +102,24 @@ class PlaceDBClient(_Client):
             "POST", "/query", content=encode(frame), headers=OCTET, params=params
         ).json()
 
-    def overlaps(self, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
+    def overlaps(
+        self, robot_a: str, robot_b: str, wait: float = 0.0, source: str = "all"
+    ) -> list[dict]:
         return self._call(
             "GET",
             "/overlaps",
-            params={"robot_a": robot_a, "robot_b": robot_b, "wait": wait},
+            params={"robot_a": robot_a, "robot_b": robot_b, "wait": wait, "source": source},
             timeout=wait + 60,
         ).json()["overlaps"]
+
+    def put_link(self, robot_a: str, robot_b: str, T_a_b) -> int:
+        """Register a gated map alignment; returns the link overlaps recorded."""
+        body = {"transform": [[float(v) for v in row] for row in T_a_b]}
+        r = self._call("PUT", f"/links/{robot_a}/{robot_b}", json=body, timeout=600)
+        return r.json()["link_overlaps"]
+
+    def links(self) -> list[dict]:
+        return self._call("GET", "/links").json()
 
     def overlap_graph(self, wait: float = 0.0) -> list[dict]:
         return self._call("GET", "/overlaps", params={"wait": wait}, timeout=wait + 60).json()[

@@ -32,12 +32,13 @@ from shared.retrieval import (
     Filter,
     PlaceIndex,
     run_cascade,
+    sparse_covisibility,
 )
 from shared.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: links table, overlaps.source
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS robots (
@@ -54,8 +55,13 @@ CREATE TABLE IF NOT EXISTS overlaps (
     kf_b INTEGER NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
     robot_a INTEGER NOT NULL, robot_b INTEGER NOT NULL,
     inliers INTEGER NOT NULL, matches INTEGER NOT NULL, created REAL NOT NULL,
+    source TEXT NOT NULL DEFAULT 'cascade',
     PRIMARY KEY (kf_a, kf_b));
 CREATE INDEX IF NOT EXISTS overlaps_robots ON overlaps(robot_a, robot_b);
+CREATE TABLE IF NOT EXISTS links (
+    robot_a INTEGER NOT NULL REFERENCES robots(id) ON DELETE CASCADE,
+    robot_b INTEGER NOT NULL REFERENCES robots(id) ON DELETE CASCADE,
+    transform BLOB NOT NULL, created REAL NOT NULL, PRIMARY KEY (robot_a, robot_b));
 CREATE TABLE IF NOT EXISTS codebooks (
     id INTEGER PRIMARY KEY AUTOINCREMENT, created REAL NOT NULL, n_clusters INTEGER NOT NULL,
     dim INTEGER NOT NULL, centroids BLOB NOT NULL);
@@ -74,6 +80,7 @@ class Overlap:
     stamp_b: float
     inliers: int
     matches: int
+    source: str = "cascade"  # or "link": co-visible under a registered map alignment
 
 
 @dataclass(eq=False)
@@ -153,6 +160,7 @@ class PlaceDB:
 
     def _init_schema(self) -> None:
         with self._write_lock:
+            self._migrate()
             self._db.executescript(SCHEMA)
             row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
             if row is None:
@@ -172,6 +180,23 @@ class PlaceDB:
                     f"{self.path} was built with vocabulary {vid}, but "
                     f"{self.vocabulary.vocab_id} is loaded"
                 )
+
+    def _migrate(self) -> None:
+        """Schema 1 -> 2: overlaps gain a source column, links appear (by SCHEMA)."""
+        has_meta = self._db.execute(
+            "SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'"
+        ).fetchone()
+        if not has_meta:
+            return
+        row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        if row is not None and int(row[0]) == 1:
+            self._db.execute("BEGIN IMMEDIATE")
+            self._db.execute(
+                "ALTER TABLE overlaps ADD COLUMN source TEXT NOT NULL DEFAULT 'cascade'"
+            )
+            self._db.execute("UPDATE meta SET value='2' WHERE key='schema_version'")
+            self._db.execute("COMMIT")
+            log.info("%s: schema migrated from version 1 to 2", self.path)
 
     def _initial_codebook(self) -> np.ndarray:
         row = self._db.execute(
@@ -452,7 +477,8 @@ class PlaceDB:
         rows = (
             self._reader()
             .execute(
-                "SELECT o.kf_a, ka.stamp, o.kf_b, kb.stamp, o.inliers, o.matches, o.robot_a "
+                "SELECT o.kf_a, ka.stamp, o.kf_b, kb.stamp, o.inliers, o.matches, o.robot_a, "
+                "o.source "
                 "FROM overlaps o JOIN keyframes ka ON ka.id=o.kf_a "
                 "JOIN keyframes kb ON kb.id=o.kf_b "
                 "WHERE (o.robot_a=? AND o.robot_b=?) OR (o.robot_a=? AND o.robot_b=?)",
@@ -461,10 +487,10 @@ class PlaceDB:
             .fetchall()
         )
         out = []
-        for ka, sa, kb, sb, inl, m, first in rows:
+        for ka, sa, kb, sb, inl, m, first, src in rows:
             if first != ra:
                 ka, sa, kb, sb = kb, sb, ka, sa
-            out.append(Overlap(robot_a, ka, sa, robot_b, kb, sb, inl, m))
+            out.append(Overlap(robot_a, ka, sa, robot_b, kb, sb, inl, m, src))
         return sorted(out, key=lambda o: (o.stamp_a, o.stamp_b))
 
     def overlap_graph(self) -> list[dict]:
@@ -539,6 +565,7 @@ class PlaceDB:
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 self._db.execute("DELETE FROM overlaps WHERE robot_a=? OR robot_b=?", (rid, rid))
+                self._db.execute("DELETE FROM links WHERE robot_a=? OR robot_b=?", (rid, rid))
                 self._db.execute("DELETE FROM keyframes WHERE robot=?", (rid,))
                 self._db.execute("DELETE FROM robots WHERE id=?", (rid,))
                 self._db.execute("COMMIT")
@@ -601,6 +628,108 @@ class PlaceDB:
         except Exception:
             log.exception("background codebook retraining failed")
 
+    # --- links: map alignments registered by the aligner --------------------------------
+
+    LINK_MIN_POINTS = 15
+    LINK_MIN_SHARE = 0.15
+
+    def add_link(self, robot_a: str, robot_b: str, T_a_b: np.ndarray) -> int:
+        """Register a map alignment (B's map frame into A's, from a gated aligner result)
+        and record, as overlaps with source "link", each keyframe's most co-visible
+        keyframe of the other robot under it. Wide baselines defeat keyframe-level visual
+        verification (SUN3D: even under the true transform, 2 of 13 keyframes share 4
+        matching features) where the whole-map alignment succeeds; with it the overlap
+        graph covers what the robots really share. Replaces the pair's earlier link.
+        Returns the number of link overlaps recorded."""
+        T = np.asarray(T_a_b, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise BadInput(f"A link needs a finite 4x4 transform, got shape {T.shape}")
+        R = T[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+            raise BadInput("A link's transform must be rigid (rotation and translation)")
+        if robot_a == robot_b:
+            raise BadInput("A link joins two different robots")
+        ra, rb = self._robot(robot_a, create=False), self._robot(robot_b, create=False)
+        if ra > rb:  # one row per robot pair
+            ra, rb, T = rb, ra, np.linalg.inv(T)
+        fa, fb = self._robot_frames(ra), self._robot_frames(rb)
+        rows = _link_rows(fb, rb, fa, ra, T) + _link_rows(fa, ra, fb, rb, np.linalg.inv(T))
+        now = time.time()
+        with self._write_lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute(
+                    "INSERT OR REPLACE INTO links VALUES (?, ?, ?, ?)",
+                    (ra, rb, T.astype("<f8").tobytes(), now),
+                )
+                self._db.execute(
+                    "DELETE FROM overlaps WHERE source='link' AND "
+                    "((robot_a=? AND robot_b=?) OR (robot_a=? AND robot_b=?))",
+                    (ra, rb, rb, ra),
+                )
+                n = self._insert_link_rows(rows, now)
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        log.info("link %s-%s registered: %d co-visible keyframe pairs", robot_a, robot_b, n)
+        return n
+
+    def _insert_link_rows(self, rows, now: float) -> int:
+        n = 0
+        for kx, rx, ky, ry, seen, total in rows:
+            hit = self._db.execute(
+                "SELECT 1 FROM overlaps WHERE (kf_a=? AND kf_b=?) OR (kf_a=? AND kf_b=?)",
+                (kx, ky, ky, kx),
+            ).fetchone()
+            if hit is None:
+                self._db.execute(
+                    "INSERT INTO overlaps VALUES (?, ?, ?, ?, ?, ?, ?, 'link')",
+                    (kx, ky, rx, ry, seen, total, now),
+                )
+                n += 1
+        return n
+
+    def links(self) -> list[dict]:
+        """Registered map alignments: {robot_a, robot_b, transform (B into A), created}."""
+        rows = self._reader().execute("SELECT robot_a, robot_b, transform, created FROM links")
+        return [
+            {
+                "robot_a": self._robot_names[a],
+                "robot_b": self._robot_names[b],
+                "transform": np.frombuffer(t, "<f8").reshape(4, 4).tolist(),
+                "created": c,
+            }
+            for a, b, t, c in rows
+        ]
+
+    def _robot_frames(self, rid: int) -> list[tuple[int, Frame]]:
+        ids = [
+            r[0]
+            for r in self._reader().execute(
+                "SELECT id FROM keyframes WHERE robot=? ORDER BY stamp", (rid,)
+            )
+        ]
+        return [(i, self.load_frame(i)) for i in ids]
+
+    def _link_overlaps_for(self, kf_id: int, frame: Frame, rid: int) -> list[tuple]:
+        """Link overlaps of one new keyframe with the robots it is linked to."""
+        rows = []
+        for a, b, t in (
+            self._reader()
+            .execute(
+                "SELECT robot_a, robot_b, transform FROM links WHERE robot_a=? OR robot_b=?",
+                (rid, rid),
+            )
+            .fetchall()
+        ):
+            T = np.frombuffer(t, "<f8").reshape(4, 4)
+            other, T_other_this = (a, T) if b == rid else (b, np.linalg.inv(T))
+            rows += _link_rows(
+                [(kf_id, frame)], rid, self._robot_frames(other), other, T_other_this
+            )
+        return rows
+
     # --- overlap worker ---------------------------------------------------------------
 
     def process(self, kf_id: int) -> list[Overlap]:
@@ -619,13 +748,16 @@ class PlaceDB:
         for c in result.verified:
             if c.robot not in best:
                 best[c.robot] = c
+        link_rows = self._link_overlaps_for(kf_id, frame, rid)
         now = time.time()
         with self._write_lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 for c in best.values():
                     self._db.execute(
-                        "INSERT OR REPLACE INTO overlaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        "INSERT OR REPLACE INTO overlaps "
+                        "(kf_a, kf_b, robot_a, robot_b, inliers, matches, created) "
+                        "VALUES (?, ?, ?, ?, ?, ?, ?)",
                         (
                             kf_id,
                             c.kf_id,
@@ -636,6 +768,7 @@ class PlaceDB:
                             now,
                         ),
                     )
+                self._insert_link_rows(link_rows, now)
                 self._db.execute("UPDATE keyframes SET processed=1 WHERE id=?", (kf_id,))
                 self._db.execute("COMMIT")
             except sqlite3.IntegrityError:
@@ -694,3 +827,20 @@ class PlaceDB:
             self._worker.join(timeout=drain_timeout)
         with self._write_lock:
             self._db.close()
+
+
+def _link_rows(xs, rx: int, ys, ry: int, T_y_x: np.ndarray) -> list[tuple]:
+    """For each keyframe x (id, frame) of robot rx, its most co-visible keyframe of robot ry
+    under T_y_x (rx's map into ry's): rows (kf_x, rx, kf_y, ry, points seen, points)."""
+    out = []
+    for kx, fx in xs:
+        best = None
+        for ky, fy in ys:
+            seen, share = sparse_covisibility(fy, fx, T_y_x)
+            ok = seen >= PlaceDB.LINK_MIN_POINTS and share >= PlaceDB.LINK_MIN_SHARE
+            if ok and (best is None or seen > best[4]):
+                n_pts = int(fx.point_valid.sum()) if fx.point_valid is not None else 0
+                best = (kx, rx, ky, ry, seen, n_pts)
+        if best is not None:
+            out.append(best)
+    return out

@@ -403,3 +403,43 @@ def run_cascade(
         len(index),
         1000 * (time.perf_counter() - t0),
     )
+
+
+def sparse_covisibility(
+    target: Frame, source: Frame, T_target_source: np.ndarray, radius_px: float = 24.0
+) -> tuple[int, float]:
+    """How much of `source`'s scene `target`'s camera saw, given the transform between the
+    two robots' maps: source's feature points, mapped and projected into target's image,
+    that land near one of target's own features at a consistent depth (so neither outside
+    the view nor hidden behind a nearer surface). Needs both frames' map points, poses and
+    target's intrinsics. Returns (points seen, share of source's points)."""
+    if (
+        target.points is None
+        or source.points is None
+        or target.T_map_cam is None
+        or target.intrinsics is None
+    ):
+        return 0, 0.0
+    from scipy.spatial import cKDTree
+
+    K = target.intrinsics
+    cam = np.linalg.inv(target.T_map_cam)
+    pa = target.points[target.point_valid].astype(np.float64) @ cam[:3, :3].T + cam[:3, 3]
+    M = cam @ T_target_source
+    pb = source.points[source.point_valid].astype(np.float64) @ M[:3, :3].T + M[:3, 3]
+    pa = pa[pa[:, 2] > 0.1]
+    if not len(pa) or not len(pb):
+        return 0, 0.0
+    z = pb[:, 2]
+    front = z > 0.1
+    zf = z[front]
+    ub = np.stack([K.fx * pb[front, 0] / zf + K.cx, K.fy * pb[front, 1] / zf + K.cy], 1)
+    inside = (ub[:, 0] >= 0) & (ub[:, 0] < K.width) & (ub[:, 1] >= 0) & (ub[:, 1] < K.height)
+    if not inside.any():
+        return 0, 0.0
+    ua = np.stack([K.fx * pa[:, 0] / pa[:, 2] + K.cx, K.fy * pa[:, 1] / pa[:, 2] + K.cy], 1)
+    d, k = cKDTree(ua).query(ub[inside], distance_upper_bound=radius_px)
+    near = np.isfinite(d)
+    za, zb = pa[k[near], 2], zf[inside][near]
+    n = int(np.count_nonzero(np.abs(zb - za) < 0.1 + 0.05 * za))
+    return n, n / len(pb)

@@ -1,5 +1,6 @@
 """The place database over HTTP (in-process TestClient)."""
 
+import json
 import re
 
 import numpy as np
@@ -138,3 +139,37 @@ def test_vocabulary_mismatch_is_refused(client, frames):
     r = _post(client, "robot_a", encode(f))
     assert r.status_code == 422 and "vocabulary" in r.json()["detail"]
     assert np.isfinite(client.get("/stats").json()["cluster_mean"])
+
+
+def test_links_validate_and_add_co_visible_pairs(client, frames, sun3d):
+    for robot, datas in frames.items():
+        for d in datas:
+            assert _post(client, robot, d).status_code == 201
+    before = client.get(
+        "/overlaps", params={"robot_a": "robot_a", "robot_b": "robot_b", "wait": 60}
+    )
+    n_cascade = len(before.json()["overlaps"])
+    T = np.loadtxt(sun3d / "T_a_b.txt")
+    bad = [
+        ({"transform": [[1, 0], [0, 1]]}, 422, "4x4"),
+        ({"transform": (2 * np.eye(4)).tolist()}, 422, "rigid"),
+        ({"transform": [[float("nan")] * 4] * 4}, 422, "finite"),
+    ]
+    for body, status, msg in bad:
+        content = json.dumps(body)  # allows NaN, as a careless client would send it
+        r = client.put(
+            "/links/robot_a/robot_b", content=content, headers={"content-type": "application/json"}
+        )
+        assert r.status_code == status and msg in r.text, r.text
+    assert client.put("/links/robot_a/ghost", json={"transform": T.tolist()}).status_code == 404
+    assert client.get("/links").json() == []  # nothing stored by the refusals
+
+    r = client.put("/links/robot_a/robot_b", json={"transform": T.tolist()})
+    assert r.status_code == 200 and r.json()["link_overlaps"] > 0
+    q = {"robot_a": "robot_a", "robot_b": "robot_b"}
+    ov = client.get("/overlaps", params=q).json()["overlaps"]
+    assert len(ov) == n_cascade + r.json()["link_overlaps"]
+    only = client.get("/overlaps", params={**q, "source": "cascade"}).json()["overlaps"]
+    assert len(only) == n_cascade and all(p["source"] == "cascade" for p in only)
+    (link,) = client.get("/links").json()
+    np.testing.assert_allclose(link["transform"], T)

@@ -125,3 +125,77 @@ def test_index_bow_matches_reference_and_retrain_keeps_everything(corridor_frame
     assert 5 not in {c.kf_id for c in idx.global_stage(q.gist, p, Filter())[0]}
     r = run_cascade(q, idx, corridor_frames.__getitem__, CascadeParams(), Filter(max_stamp=54.5))
     assert r.winner is not None and r.winner.kf_id in range(17, 24)
+
+
+def test_sun3d_link_from_the_aligner_covers_robot_b(sun3d, vocabulary, tmp_path):
+    """Keyframe-level verification finds one pair across this wide baseline; once the
+    aligner's gated transform is registered as a link, the place database records the
+    co-visible pairs: most of robot B's keyframes get one, every one true by the ground
+    truth, also for keyframes that arrive after the link, and they survive a restart."""
+    from shared.align import align_views
+    from shared.correspondences import RGBDView
+    from shared.dataset import load_depth, load_rgb
+    from shared.extract import keyframe_indices
+
+    recs = {r: read_recording(sun3d / r) for r in ("robot_a", "robot_b")}
+    views = {
+        r: [
+            RGBDView(load_rgb(f.rgb_path), load_depth(f.depth_path), rec.intrinsics, f.T_map_cam)
+            for f in (rec.frames[i] for i in keyframe_indices(rec))
+        ]
+        for r, rec in recs.items()
+    }
+    res = align_views([(a, b) for a in views["robot_a"] for b in views["robot_b"]])
+    assert res.merged, res.reason
+
+    x = FrameExtractor(vocabulary)
+    frames = {r: list(extract_recording(rec, x)) for r, rec in recs.items()}
+    db = PlaceDB(tmp_path / "l.sqlite", vocabulary, background=False)
+    for f in frames["robot_a"] + frames["robot_b"][:6]:
+        db.add_keyframe(f.robot_id, encode(f))
+    db.process_pending()
+    assert db.add_link("robot_a", "robot_b", res.T_a_b) > 0
+    for f in frames["robot_b"][6:]:  # arriving after the link
+        db.add_keyframe("robot_b", encode(f))
+    db.process_pending()
+
+    T_gt = np.loadtxt(sun3d / "T_a_b.txt")
+    by_stamp = {r: {f.stamp: f for f in recs[r].frames} for r in recs}
+    pairs = db.overlaps("robot_a", "robot_b")
+    assert {p.source for p in pairs} == {"cascade", "link"}
+    for p in pairs:
+        fa, fb = by_stamp["robot_a"][p.stamp_a], by_stamp["robot_b"][p.stamp_b]
+        assert covisibility(fa, fb, T_gt, recs["robot_a"].intrinsics) >= 0.05, p
+    covered = {p.stamp_b for p in pairs}
+    assert len(covered) >= len(frames["robot_b"]) / 2, (len(covered), len(frames["robot_b"]))
+    assert {f.stamp for f in frames["robot_b"][6:]} & covered
+    (link,) = db.links()
+    np.testing.assert_allclose(link["transform"], res.T_a_b, atol=1e-9)
+    db.close()
+    again = PlaceDB(tmp_path / "l.sqlite", vocabulary, background=False)
+    assert again.overlaps("robot_a", "robot_b") == pairs and len(again.links()) == 1
+    again.close()
+
+
+def test_schema_1_database_is_migrated_keeping_everything(sun3d_db, vocabulary, tmp_path):
+    import sqlite3
+
+    db, _ = sun3d_db
+    path = tmp_path / "v1.sqlite"
+    con = sqlite3.connect(path)
+    src = sqlite3.connect(db.path)
+    src.backup(con)  # the live database is in WAL mode: copy through SQLite
+    src.close()
+    con.executescript(
+        "DROP INDEX overlaps_robots; ALTER TABLE overlaps DROP COLUMN source; DROP TABLE links;"
+        "CREATE INDEX overlaps_robots ON overlaps(robot_a, robot_b);"
+        "UPDATE meta SET value='1' WHERE key='schema_version';"
+    )
+    con.close()
+    again = PlaceDB(path, vocabulary, background=False)
+    try:
+        assert again.robots() == db.robots()
+        assert again.overlaps("robot_a", "robot_b") == db.overlaps("robot_a", "robot_b")
+        assert again.links() == []
+    finally:
+        again.close()

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
+import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
@@ -153,9 +156,11 @@ def overlaps(
     robot_a: str | None = None,
     robot_b: str | None = None,
     wait: float = Query(0.0, ge=0.0, le=600.0),
+    source: Literal["all", "cascade", "link"] = "all",
 ) -> s.Overlaps:
     """Verified keyframe pairs between two robots, or without robots the overlap graph.
-    `wait` seconds at most for keyframes still queued for overlap detection."""
+    `wait` seconds at most for keyframes still queued for overlap detection; `source`
+    keeps only the cascade's pairs or only those co-visible under a registered link."""
     db = _db(request)
     if wait:
         db.wait_idle(wait)
@@ -175,10 +180,32 @@ def overlaps(
             stamp_b=o.stamp_b,
             inliers=o.inliers,
             matches=o.matches,
+            source=o.source,
         )
         for o in db.overlaps(robot_a, robot_b)
+        if source in ("all", o.source)
     ]
     return s.Overlaps(overlaps=pairs, pending=db.pending())
+
+
+@router.put(
+    "/links/{robot_a}/{robot_b}",
+    response_model=s.LinkOut,
+    dependencies=[Depends(operator_only)],
+)
+async def put_link(robot_a: str, robot_b: str, body: s.LinkIn, request: Request) -> s.LinkOut:
+    """Register the alignment of two robots' maps (from the aligner, after its quality
+    gate); the keyframe pairs co-visible under it become overlaps with source "link"."""
+    n = await run_in_threadpool(
+        _db(request).add_link, robot_a, robot_b, np.array(body.transform, np.float64)
+    )
+    return s.LinkOut(robot_a=robot_a, robot_b=robot_b, link_overlaps=n)
+
+
+@router.get("/links", response_model=list[s.Link], dependencies=[Depends(operator_only)])
+def links(request: Request) -> list[s.Link]:
+    """The registered map alignments."""
+    return [s.Link(**x) for x in _db(request).links()]
 
 
 @router.get("/vocabulary", dependencies=[Depends(any_token)])

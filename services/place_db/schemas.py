@@ -1,9 +1,10 @@
 """Response bodies of the place database. Request bodies are encoded frames
-(`application/octet-stream`, the version-1 format of `shared/frame.py`)."""
+(`application/octet-stream`, the version-1 format of `shared/frame.py`), except `PUT
+/links`, which takes `LinkIn` as JSON."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field, field_validator
 
 
 class Health(BaseModel):
@@ -80,6 +81,38 @@ class OverlapPair(BaseModel):
     stamp_b: float
     inliers: int
     matches: int
+    source: str = Field(
+        "cascade",
+        description="cascade: verified by the retrieval cascade (inliers = epipolar "
+        "inliers); link: co-visible under a registered map alignment (inliers = feature "
+        "points of one keyframe seen by the other's camera, matches = its feature points)",
+    )
+
+
+class LinkIn(BaseModel):
+    transform: list[list[float]] = Field(
+        description="4x4 rigid transform mapping robot_b's map frame into robot_a's"
+    )
+
+    @field_validator("transform")
+    @classmethod
+    def _four_by_four(cls, v):
+        if len(v) != 4 or any(len(r) != 4 for r in v):
+            raise ValueError("transform must be 4x4")
+        return v
+
+
+class LinkOut(BaseModel):
+    robot_a: str
+    robot_b: str
+    link_overlaps: int
+
+
+class Link(BaseModel):
+    robot_a: str
+    robot_b: str
+    transform: list[list[float]]
+    created: float
 
 
 class OverlapEdge(BaseModel):
