@@ -833,9 +833,13 @@ def _link_rows(xs, rx: int, ys, ry: int, T_y_x: np.ndarray) -> list[tuple]:
     """For each keyframe x (id, frame) of robot rx, its most co-visible keyframe of robot ry
     under T_y_x (rx's map into ry's): rows (kf_x, rx, kf_y, ry, points seen, points)."""
     out = []
+    cy = np.array([_centre(fy) for _, fy in ys]).reshape(-1, 3)
     for kx, fx in xs:
         best = None
-        for ky, fy in ys:
+        c = T_y_x[:3, :3] @ _centre(fx) + T_y_x[:3, 3]
+        near = np.flatnonzero(np.linalg.norm(cy - c, axis=1) < LINK_NEAR_M)
+        for k in near:
+            ky, fy = ys[k]
             seen, share = sparse_covisibility(fy, fx, T_y_x)
             ok = seen >= PlaceDB.LINK_MIN_POINTS and share >= PlaceDB.LINK_MIN_SHARE
             if ok and (best is None or seen > best[4]):
@@ -844,3 +848,12 @@ def _link_rows(xs, rx: int, ys, ry: int, T_y_x: np.ndarray) -> list[tuple]:
         if best is not None:
             out.append(best)
     return out
+
+
+LINK_NEAR_M = 4.0  # keyframes whose seen points' centres are farther apart share nothing
+
+
+def _centre(f: Frame) -> np.ndarray:
+    if f.points is None or f.point_valid is None or not f.point_valid.any():
+        return np.full(3, np.inf)
+    return f.points[f.point_valid].astype(np.float64).mean(0)
