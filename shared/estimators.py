@@ -165,6 +165,12 @@ class MLPEstimator:
         damping (defaults 1000, 0, 6, 1e-7, 1e-3).
     val_fraction : held-out share for the validation-failure rule.
     optimizer : "lm" (Levenberg-Marquardt) or "adam" (first order, for comparison).
+    init : "linear" (default): first-layer weights LeCun-random times 0.1, so the hidden
+        units start in tanh's linear range, and the output layer solved by least squares
+        on them: training starts from about the best affine map and LM fits what remains.
+        "lecun": both layers random (Matlab's style of start). Measured on the Laurana
+        overlap (4,000 pairs, 1,000 epochs, held-out error): T1 3.3e-5 against 6.1e-4,
+        T4 2.7e-5 against 7.7e-4 (docs/BENCHMARKS.md).
     """
 
     A, B = 1.7159, 2.0 / 3.0
@@ -180,10 +186,12 @@ class MLPEstimator:
         val_fraction: float = 0.15,
         optimizer: str = "lm",
         random_state: int = 0,
+        init: str = "linear",
     ):
         self.hidden, self.max_epochs, self.goal = hidden, max_epochs, goal
         self.max_fail, self.min_grad, self.mu = max_fail, min_grad, mu
         self.val_fraction, self.optimizer, self.random_state = val_fraction, optimizer, random_state
+        self.init = init
 
     def _forward(self, theta: torch.Tensor, Z: torch.Tensor) -> torch.Tensor:
         h = self.hidden
@@ -277,6 +285,14 @@ class MLPEstimator:
             ]
         )
 
+    def _linear_start(self, theta: torch.Tensor, Zx: torch.Tensor, Zy: torch.Tensor):
+        h = self.hidden
+        W1 = theta[: 3 * h].reshape(h, 3) * 0.1
+        H = self.A * torch.tanh(self.B * (Zx @ W1.T))
+        Ha = torch.cat([H, torch.ones(len(H), 1, dtype=H.dtype)], 1)
+        sol = torch.linalg.lstsq(Ha, Zy, driver="gelsd").solution  # (h + 1, 3)
+        return torch.cat([W1.ravel(), torch.zeros(h, dtype=H.dtype), sol[:h].T.ravel(), sol[h]])
+
     def fit(self, X: np.ndarray, Y: np.ndarray) -> MLPEstimator:
         X, Y = _check_xy(X, Y, 10)
         t0 = time.perf_counter()
@@ -290,6 +306,10 @@ class MLPEstimator:
         val, tr = perm[:n_val], perm[n_val:]
         gen = torch.Generator().manual_seed(self.random_state)
         theta = self._init(gen)
+        if self.init == "linear":
+            theta = self._linear_start(theta, Zx[tr], Zy[tr])
+        elif self.init != "lecun":
+            raise BadInput(f"Unknown init {self.init!r} (linear or lecun)")
         train = self._train_lm if self.optimizer == "lm" else self._train_adam
         threads = torch.get_num_threads()
         # ~150 weights: the products are small (at most 5,000 x 80), and one thread beats
@@ -317,8 +337,8 @@ class MLPEstimator:
         def residual(t):
             return (self._forward(t, Zx) - Zy).reshape(-1)
 
+        e = residual(theta)  # kept from the accepted step: one forward pass per epoch
         for epoch in range(1, self.max_epochs + 1):
-            e = residual(theta)
             sse = float(e @ e)
             if sse / len(e) <= self.goal:
                 return theta, epoch, "goal"
@@ -330,7 +350,7 @@ class MLPEstimator:
                 cand = theta - step
                 e2 = residual(cand)
                 if float(e2 @ e2) < sse:
-                    theta, mu = cand, max(mu * 0.1, 1e-20)
+                    theta, mu, e = cand, max(mu * 0.1, 1e-20), e2
                     break
                 mu *= 10.0
                 if mu > 1e10:
