@@ -328,8 +328,16 @@ def _align(C: Correspondences, R: Correspondences, pairs, p: AlignParams) -> Ali
         rigid_m = holdout_residual(R.X[idx], R.Y[idx])
         out.mlp_holdout_m = holdout_residual(R.X[idx], R.Y[idx], model="mlp")
         if out.mlp_holdout_m < 0.9 * rigid_m:
-            out.mlp = MLPEstimator().fit(R.X[idx], R.Y[idx])
-            out.method += "+mlp"
+            mlp = MLPEstimator().fit(R.X[idx], R.Y[idx])
+            # a correction, not a reshaping: over B's whole map (beyond the matches, where
+            # a network fitted to noise can bend away) it must stay near the rigid fit
+            pb = np.asarray(views_cloud(views_b, voxel=p.coarse_voxel_m).points)
+            bend = float(np.max(np.linalg.norm(mlp.transform(pb) - apply(T, pb), axis=1)))
+            if bend <= 2 * p.max_holdout_m:
+                out.mlp = mlp
+                out.method += "+mlp"
+            else:
+                log.info("MLP kept out: it bends B's map %.2f m away from the rigid fit", bend)
     out.merged, out.reason = True, "passed the quality gate"
     return out
 
