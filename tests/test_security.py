@@ -62,6 +62,8 @@ def test_operator_token_reads_and_administers(secured):
         ("get", "/stats"),
         ("delete", "/robots/A"),
         ("post", "/admin/retrain"),
+        ("get", "/links"),
+        ("put", "/links/A/B"),
     ]:
         assert getattr(secured, method)(path, headers=_auth(TOK_A)).status_code == 403, path
         assert getattr(secured, method)(path).status_code == 401, path
