@@ -28,6 +28,11 @@ class Settings(BaseSettings):
     min_spread_m: float = _P.min_spread_m
     max_holdout_m: float = _P.max_holdout_m
     voxel_m: float = _P.voxel_m
+    coarse_voxel_m: float = _P.coarse_voxel_m
+    min_consistency: float = _P.min_consistency
+    min_overlap: float = _P.min_overlap
+    ambiguity: float = _P.ambiguity
+    colour_icp: bool = _P.colour_icp
 
     def params(self) -> AlignParams:
         return AlignParams(
@@ -36,4 +41,9 @@ class Settings(BaseSettings):
             min_spread_m=self.min_spread_m,
             max_holdout_m=self.max_holdout_m,
             voxel_m=self.voxel_m,
+            coarse_voxel_m=self.coarse_voxel_m,
+            min_consistency=self.min_consistency,
+            min_overlap=self.min_overlap,
+            ambiguity=self.ambiguity,
+            colour_icp=self.colour_icp,
         )
