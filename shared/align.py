@@ -50,6 +50,7 @@ class AlignParams:
     hypotheses: int = 6  # disjoint consensus sets of the pooled verified matches
     pair_min_support: int = 4  # a pair's raw matches give a hypothesis with this support
     max_candidates: int = 40  # distinct hypotheses scored at the coarse scale
+    dedupe_m: float = 0.25  # hypotheses closer than this (RMS over B's cloud) share one ICP basin
     refine: int = 4  # best coarse hypotheses refined at the fine scale
     voxel_m: float = 0.03
     coarse_voxel_m: float = 0.08
@@ -369,7 +370,8 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, p: AlignParams
     ca0, cb0 = views_cloud(views_a, voxel=v0), views_cloud(views_b, voxel=v0)
     probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
     hyps = sorted(hyps, key=lambda h: -h.support)
-    hyps = _distinct(hyps, probe, v0)[: p.max_candidates]
+    hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
+    log.debug("%d distinct hypotheses", len(hyps))
     for h in hyps:
         h.T_a_b, _, _ = icp(cb0, ca0, h.T_a_b, distances=(4 * v0, 1.5 * v0), iterations=15)
     hyps = _distinct(hyps, probe, v0)
