@@ -131,6 +131,7 @@ class PlaceDB:
         self._db = self._connect()
         self._init_schema()
         self._robot_ids: dict[str, int] = {}
+        self._centres: dict[int, np.ndarray] = {}  # keyframe id -> map-point centre (links)
         self._robot_names: dict[int, str] = {}
         self.index = PlaceIndex(self._initial_codebook(), vocabulary.n_words)
         self._queue: queue.Queue[int | None] = queue.Queue()
@@ -725,9 +726,19 @@ class PlaceDB:
         ):
             T = np.frombuffer(t, "<f8").reshape(4, 4)
             other, T_other_this = (a, T) if b == rid else (b, np.linalg.inv(T))
-            rows += _link_rows(
-                [(kf_id, frame)], rid, self._robot_frames(other), other, T_other_this
-            )
+            # only the other robot's keyframes near this one are read from disk: their
+            # point centres are cached (24 bytes each) after the first look
+            ids = [
+                r[0]
+                for r in self._reader().execute("SELECT id FROM keyframes WHERE robot=?", (other,))
+            ]
+            for i in ids:
+                if i not in self._centres:
+                    self._centres[i] = _centre(self.load_frame(i))
+            c = T_other_this[:3, :3] @ _centre(frame) + T_other_this[:3, 3]
+            near = [i for i in ids if np.linalg.norm(self._centres[i] - c) < LINK_NEAR_M]
+            ys = [(i, self.load_frame(i)) for i in near]
+            rows += _link_rows([(kf_id, frame)], rid, ys, other, T_other_this)
         return rows
 
     # --- overlap worker ---------------------------------------------------------------
