@@ -54,7 +54,7 @@ class AlignParams:
     refine: int = 4  # best coarse hypotheses refined at the fine scale
     voxel_m: float = 0.03
     coarse_voxel_m: float = 0.08
-    min_consistency: float = 0.6  # free-space supports / (supports + conflicts)
+    min_consistency: float = 0.7  # free-space supports / (supports + conflicts)
     min_overlap: float = 0.1  # share of B's cloud on A's surfaces
     ambiguity: float = 0.9  # a rival with this share of the best score makes it ambiguous
     rival_m: float = 0.3

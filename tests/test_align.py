@@ -116,3 +116,29 @@ def test_bad_views_are_named():
         RGBDView(rgb, np.ones((48, 64), np.float32), TUM_FR1, np.eye(4))
     with pytest.raises(BadInput, match="at least one"):
         align_views([])
+
+
+@pytest.mark.parametrize(
+    "part_a, part_b, swap",
+    [
+        (slice(None), slice(0, 7), False),
+        (slice(None), slice(7, None), False),  # once merged 0.77 m off: the free-space gate
+        (slice(0, 5), slice(None), False),
+        (slice(5, None), slice(None), False),
+        (slice(None), slice(None), True),
+    ],
+)
+def test_sun3d_parts_are_merged_right_or_not_at_all(sun3d, part_a, part_b, swap):
+    """Less overlap (parts of either robot) or the robots' roles swapped: the answer is
+    near the ground truth (15 cm / 3 deg, i.e. not a look-alike place) or no merge."""
+    T_gt = np.loadtxt(sun3d / "T_a_b.txt")
+    va = sun3d_keyframes(sun3d, "robot_a")[part_a]
+    vb = sun3d_keyframes(sun3d, "robot_b")[part_b]
+    if swap:
+        va, vb, T_gt = vb, va, np.linalg.inv(T_gt)
+    res = align_views([(a, b) for a in va for b in vb])
+    if res.merged:
+        dt, dr = transform_error(res.T_a_b, T_gt)
+        assert dt < 0.15 and dr < 3.0, (dt, dr, res.to_dict())
+    else:
+        assert res.reason
