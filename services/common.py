@@ -6,9 +6,11 @@ import hmac
 import logging
 import time
 import uuid
+from typing import Annotated
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
+from pydantic import AfterValidator
 
 from shared.errors import (
     BadFrame,
@@ -44,6 +46,16 @@ STATUS = [
     (BadVocabulary, 500),
     (Unavailable, 503),
 ]
+
+
+def _four_by_four(v: list[list[float]]) -> list[list[float]]:
+    if len(v) != 4 or any(len(r) != 4 for r in v):
+        raise ValueError("must be 4x4")
+    return v
+
+
+Matrix4 = Annotated[list[list[float]], AfterValidator(_four_by_four)]
+"""A 4x4 matrix in a JSON body, rows of numbers (pose or rigid transform)."""
 
 
 def status_of(exc: FleetmapError) -> int:

@@ -24,14 +24,12 @@ import numpy as np
 from shared.correspondences import (
     Correspondences,
     RGBDView,
-    pair_correspondences,
+    pair_features,
     pooled_correspondences,
     raw_correspondences,
-    view_features,
 )
 from shared.errors import BadInput
 from shared.estimators import MLPEstimator, fit_affine
-from shared.features import LocalFeatures
 from shared.geometry import apply, invert, transform_error
 from shared.mapcloud import REG, free_space_check, icp, overlap_fitness, views_cloud
 from shared.registration import kabsch, ransac_rigid
@@ -231,22 +229,10 @@ def align_views(
     t0 = time.perf_counter()
     if not pairs:
         raise BadInput("Give at least one RGB-D pair")
-    from concurrent.futures import ThreadPoolExecutor
-
-    distinct = list({id(v): v for pr in pairs for v in pr}.values())
-    with ThreadPoolExecutor(2) as ex:  # OpenCV releases the GIL: 1.5x on 2 cores
-        cache: dict[int, LocalFeatures] = dict(
-            zip(map(id, distinct), ex.map(view_features, distinct), strict=True)
-        )
-
-    def feats(view: RGBDView) -> LocalFeatures:
-        return cache[id(view)]
-
-    C = Correspondences.concat(
-        [pair_correspondences(a, b, i, feats(a), feats(b)) for i, (a, b) in enumerate(pairs)]
-    )
+    f = pair_features(pairs)
+    C = pooled_correspondences(pairs, f)
     R = Correspondences.concat(
-        [raw_correspondences(a, b, feats(a), feats(b), i) for i, (a, b) in enumerate(pairs)]
+        [raw_correspondences(a, b, f[id(a)], f[id(b)], i) for i, (a, b) in enumerate(pairs)]
     )
     res = _align(C, R, pairs, p)
     res.correspondences = len(R)

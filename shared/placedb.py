@@ -704,14 +704,14 @@ class PlaceDB:
             for a, b, t, c in rows
         ]
 
+    def _robot_kf_ids(self, rid: int) -> list[int]:
+        rows = self._reader().execute(
+            "SELECT id FROM keyframes WHERE robot=? ORDER BY stamp", (rid,)
+        )
+        return [r[0] for r in rows]
+
     def _robot_frames(self, rid: int) -> list[tuple[int, Frame]]:
-        ids = [
-            r[0]
-            for r in self._reader().execute(
-                "SELECT id FROM keyframes WHERE robot=? ORDER BY stamp", (rid,)
-            )
-        ]
-        return [(i, self.load_frame(i)) for i in ids]
+        return [(i, self.load_frame(i)) for i in self._robot_kf_ids(rid)]
 
     def _link_overlaps_for(self, kf_id: int, frame: Frame, rid: int) -> list[tuple]:
         """Link overlaps of one new keyframe with the robots it is linked to."""
@@ -728,10 +728,7 @@ class PlaceDB:
             other, T_other_this = (a, T) if b == rid else (b, np.linalg.inv(T))
             # only the other robot's keyframes near this one are read from disk: their
             # point centres are cached (24 bytes each) after the first look
-            ids = [
-                r[0]
-                for r in self._reader().execute("SELECT id FROM keyframes WHERE robot=?", (other,))
-            ]
+            ids = self._robot_kf_ids(other)
             for i in ids:
                 if i not in self._centres:
                     self._centres[i] = _centre(self.load_frame(i))

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field, field_validator, model_validator
+from pydantic import BaseModel, Field, model_validator
+
+from services.common import Matrix4
 
 
 class IntrinsicsIn(BaseModel):
@@ -31,15 +33,8 @@ class IntrinsicsIn(BaseModel):
 
 class ViewMeta(BaseModel):
     stamp: float = 0.0
-    T_map_cam: list[list[float]] = Field(description="4x4 camera-to-map pose")
+    T_map_cam: Matrix4 = Field(description="4x4 camera-to-map pose")
     intrinsics: IntrinsicsIn
-
-    @field_validator("T_map_cam")
-    @classmethod
-    def _four_by_four(cls, v):
-        if len(v) != 4 or any(len(r) != 4 for r in v):
-            raise ValueError("T_map_cam must be 4x4")
-        return v
 
 
 class PairMeta(BaseModel):

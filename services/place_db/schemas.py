@@ -4,7 +4,9 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field
+
+from services.common import Matrix4
 
 
 class Health(BaseModel):
@@ -90,16 +92,9 @@ class OverlapPair(BaseModel):
 
 
 class LinkIn(BaseModel):
-    transform: list[list[float]] = Field(
+    transform: Matrix4 = Field(
         description="4x4 rigid transform mapping robot_b's map frame into robot_a's"
     )
-
-    @field_validator("transform")
-    @classmethod
-    def _four_by_four(cls, v):
-        if len(v) != 4 or any(len(r) != 4 for r in v):
-            raise ValueError("transform must be 4x4")
-        return v
 
 
 class LinkOut(BaseModel):
