@@ -10,24 +10,37 @@ with no trustworthy link is listed as unmerged, never placed on a guess.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import importlib
 import json
 import logging
 import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from shared.client import AlignerClient, PlaceDBClient
+from shared import pictures
+from shared.client import AlignerClient, PlaceDBClient, ServiceError
 from shared.dataset import Recording
-from shared.extract import FrameExtractor, keyframe_indices
-from shared.geometry import pose_to_tum
+from shared.errors import Unavailable
+from shared.extract import keyframe_indices
+from shared.extract_pool import extract_keyframes
+from shared.geometry import apply, pose_to_tum
+from shared.mapcloud import REG, ROBOT_COLOURS, MapCloud, write_ply
 from shared.pairs import load_view, select_views
 
 log = logging.getLogger(__name__)
+
+#: report.json layout version (2: schema_version, transform_convention, parameters).
+REPORT_VERSION = 2
+_n_cascade = pictures.n_cascade  # the CLI's name for it
 
 
 def _free_port() -> int:
@@ -63,6 +76,44 @@ def embedded_service(kind: str, data_dir: Path | None = None):
         client.close()
         server.should_exit = True
         thread.join(30)
+
+
+@contextlib.contextmanager
+def embedded_process(kind: str, data_dir: Path | None = None):
+    """A service as a child process on a free loopback port; yields its URL. The place
+    database runs so: its overlap worker then has a core (and an interpreter lock) of its
+    own while this process posts keyframes."""
+    port = _free_port()
+    cmd = [sys.executable, "-m", "services.cli", "serve", kind, "--port", str(port)]
+    if data_dir is not None:
+        cmd += ["--data-dir", str(data_dir)]
+    url = f"http://127.0.0.1:{port}"
+    with tempfile.TemporaryFile() as errors:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errors)
+        client = PlaceDBClient(url)
+        try:
+            end = time.monotonic() + 60
+            while True:
+                if proc.poll() is not None:
+                    errors.seek(0)
+                    tail = errors.read().decode(errors="replace").strip().splitlines()[-1:]
+                    raise Unavailable(f"embedded {kind} exited ({proc.returncode}): {tail}")
+                try:
+                    client.health()
+                    break
+                except (Unavailable, ServiceError):
+                    if time.monotonic() > end:
+                        raise Unavailable(f"embedded {kind} not ready after 60 s") from None
+                    time.sleep(0.05)
+            yield url
+        finally:
+            client.close()
+            proc.terminate()
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 def spanning_placement(
@@ -112,7 +163,7 @@ def optimise_poses(
     # spanning-tree links are the certain backbone; the links closing cycles may be pruned
     tree = {frozenset(c[-2:]) for c in (chain or {}).values() if len(c) >= 2}
     for a, b, e in used:  # edge: source b, target a, T_a_b maps b's frame into a's
-        info = np.eye(6) * max(float(e["inliers"]), 1.0)
+        info = e.get("information", np.eye(6) * max(float(e["inliers"]), 1.0))
         graph.edges.append(
             reg.PoseGraphEdge(
                 idx[b], idx[a], e["T_a_b"], info, uncertain=frozenset((a, b)) not in tree
@@ -141,81 +192,33 @@ def run_merge(
     voxel: float = 0.03,
     quiet: bool = False,
     token: str | None = None,
+    workers: int | None = None,
 ) -> dict:
-    """The whole job; writes OUT/report.json, merged.ply, trajectories/, overview.png."""
+    """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
+    overview.png and overlap_matrix.png. Stages: extract (every core) and ingest, overlaps,
+    align, refine on whole maps, place, write."""
     out.mkdir(parents=True, exist_ok=True)
-    timing = {"extract": 0.0, "ingest": 0.0, "overlaps": 0.0, "align": 0.0}
+    timing = {"extract": 0.0, "ingest": 0.0, "overlaps": 0.0, "align": 0.0, "outputs": 0.0}
     t_all = time.perf_counter()
+    kf_index = {r.robot_id: keyframe_indices(r, policy) for r in recs}
     with contextlib.ExitStack() as stack:
-        if place_db is None:
-            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
-            place_db = stack.enter_context(embedded_service("place-db", tmp))
-        if aligner is None:
-            aligner = stack.enter_context(embedded_service("aligner"))
+        # the workers extract while the services start
+        keyframes = extract_keyframes(recs, kf_index, vocab_path, workers)
+        stack.callback(keyframes.close)
+        t = time.perf_counter()
+        place_db, aligner = _services(stack, place_db, aligner)
+        timing["start"] = time.perf_counter() - t
         db = stack.enter_context(PlaceDBClient(place_db, token=token))
         al = stack.enter_context(AlignerClient(aligner, timeout=900, token=token))
         from services.cli import _checked_vocabulary
 
-        vocab = _checked_vocabulary(db, vocab_path)
-        extractor = FrameExtractor(vocab)
-        kf_index = {}
-        for rec in recs:
-            idx = keyframe_indices(rec, policy)
-            kf_index[rec.robot_id] = idx
-            for i in tqdm(idx, desc=f"ingest {rec.robot_id}", unit="kf", disable=quiet):
-                t = time.perf_counter()
-                view = load_view(rec, i)
-                frame = extractor(
-                    rec.robot_id, view.stamp, view.rgb, view.depth, view.intrinsics, view.T_map_cam
-                )
-                t2 = time.perf_counter()
-                db.add_keyframe(frame)
-                timing["extract"] += t2 - t
-                timing["ingest"] += time.perf_counter() - t2
+        _checked_vocabulary(db, vocab_path)
+        clouds = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
         t = time.perf_counter()
-        overlaps, by_pair = [], {}
-        for i, ra in enumerate(recs):
-            for rb in recs[i + 1 :]:
-                pairs = db.overlaps(ra.robot_id, rb.robot_id, wait=600)
-                by_pair[(ra.robot_id, rb.robot_id)] = pairs
-                overlaps += [
-                    {
-                        "robot_a": p["robot_a"],
-                        "stamp_a": p["stamp_a"],
-                        "robot_b": p["robot_b"],
-                        "stamp_b": p["stamp_b"],
-                        "inliers": p["inliers"],
-                        "source": p["source"],
-                    }
-                    for p in pairs
-                    if p["source"] == "cascade"  # link pairs are listed after aligning
-                ]
+        overlaps, by_pair = find_overlaps(db, [r.robot_id for r in recs])
         timing["overlaps"] = time.perf_counter() - t
         t = time.perf_counter()
-        edges, fits = {}, []
-        recs_by_id = {r.robot_id: r for r in recs}
-        for (a, b), pairs in tqdm(by_pair.items(), desc="align", unit="pair", disable=quiet):
-            ia, ib = select_views(
-                pairs, recs_by_id[a], recs_by_id[b], kf_index[a], kf_index[b], max_views
-            )
-            if not ia:
-                continue
-            va = [load_view(recs_by_id[a], i) for i in ia]
-            vb = [load_view(recs_by_id[b], j) for j in ib]
-            views = [(x, y) for x in va for y in vb]
-            res = al.align(views)
-            fits.append(
-                {
-                    "robot_a": a,
-                    "robot_b": b,
-                    "views": [len(va), len(vb)],
-                    **{k: v for k, v in res.items() if k != "hypotheses"},
-                }
-            )
-            if res["merged"]:
-                edges[(a, b)] = {"T_a_b": np.array(res["transform"]), "inliers": res["inliers"]}
-                # the place database records the keyframe pairs co-visible under it
-                fits[-1]["link_overlaps"] = db.put_link(a, b, res["transform"])
+        edges, fits = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
         for a, b in edges:
             overlaps += [
                 {k: p[k] for k in ("robot_a", "stamp_a", "robot_b", "stamp_b", "inliers", "source")}
@@ -223,14 +226,22 @@ def run_merge(
             ]
         timing["align"] = time.perf_counter() - t
     ids = [r.robot_id for r in recs]
+    if len(edges) >= len(recs):  # cycles: the pose graph weighs each fit by its geometry
+        edge_information(edges, clouds)
     placed, chain = spanning_placement(ids, edges)
     placed, optimised = optimise_poses(placed, edges, ids[0], chain)
     report = {
+        "schema_version": REPORT_VERSION,
         "reference": ids[0],
+        "transform_convention": (
+            "transforms[R] is T_ref_R: it maps points of robot R's map frame into the "
+            "reference robot's map frame (row-major 4x4, metres)"
+        ),
         "robots": {
             r.robot_id: {
                 "keyframes": len(kf_index[r.robot_id]),
                 "frames": len(r),
+                "source": str(r.root),
                 "chain": chain.get(r.robot_id),
             }
             for r in recs
@@ -240,48 +251,150 @@ def run_merge(
         "fits": fits,
         "unmerged": [r for r in ids if r not in placed],
         "pose_graph": {"edges": len(edges), "optimised": optimised},
+        "parameters": {
+            "keyframes": dataclasses.asdict(policy) if dataclasses.is_dataclass(policy) else None,
+            "max_views": max_views,
+            "voxel_m": voxel,
+            "vocabulary": str(vocab_path) if vocab_path else "default",
+        },
     }
-    _write_outputs(out, recs, kf_index, placed, report, voxel)
+    t = time.perf_counter()
+    write_outputs(out, recs, kf_index, clouds, placed, edges, report, voxel)
+    timing["outputs"] = time.perf_counter() - t
     timing["total"] = time.perf_counter() - t_all
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
 
 
-def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> None:
-    from shared.align import ROBOT_COLOURS
-    from shared.geometry import apply
-    from shared.mapcloud import views_cloud, write_ply
+def _services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | None):
+    """The given service URLs, or both services embedded on free loopback ports."""
+    if place_db is None:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
+        place_db = stack.enter_context(embedded_process("place-db", tmp))
+    if aligner is None:
+        aligner = stack.enter_context(embedded_service("aligner"))
+        # the MLP's torch (about a second to import) loads while the robots are ingested
+        threading.Thread(target=importlib.import_module, args=("torch",), daemon=True).start()
+    return place_db, aligner
 
-    pts, cols, names, colours = [], [], [], []
+
+def ingest(keyframes, db, total: int, timing: dict, quiet: bool) -> dict[str, MapCloud]:
+    """POST every extracted keyframe; returns each robot's map cloud (all keyframes)."""
+    parts: dict[str, list] = {}
+    bar = tqdm(total=total, desc="extract+ingest", unit="kf", disable=quiet)
+    t = time.perf_counter()
+    for kf in keyframes:
+        t2 = time.perf_counter()
+        timing["extract"] += t2 - t
+        db.add_keyframe(kf.frame)
+        parts.setdefault(kf.robot_id, []).append(kf)
+        bar.update()
+        t = time.perf_counter()
+        timing["ingest"] += t - t2
+    bar.close()
+    return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}
+
+
+def find_overlaps(db, ids: list[str]) -> tuple[list[dict], dict]:
+    """Verified keyframe pairs of every robot pair (the report's cascade overlaps)."""
+    overlaps, by_pair = [], {}
+    for i, a in enumerate(ids):
+        for b in ids[i + 1 :]:
+            pairs = db.overlaps(a, b, wait=600)
+            by_pair[(a, b)] = pairs
+            overlaps += [
+                {k: p[k] for k in ("robot_a", "stamp_a", "robot_b", "stamp_b", "inliers", "source")}
+                for p in pairs
+                if p["source"] == "cascade"  # link pairs are listed after aligning
+            ]
+    return overlaps, by_pair
+
+
+def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, workers: int = 2):
+    """Send each overlapping pair's views near its overlaps to the aligner (two pairs at a
+    time); register each gated alignment with the place database, in the background.
+    Returns (edges, fits)."""
+    recs_by_id = {r.robot_id: r for r in recs}
+
+    def one(item):
+        (a, b), pairs = item
+        ia, ib = select_views(
+            pairs, recs_by_id[a], recs_by_id[b], kf_index[a], kf_index[b], max_views
+        )
+        if not ia:
+            return None
+        va = [load_view(recs_by_id[a], i) for i in ia]
+        vb = [load_view(recs_by_id[b], j) for j in ib]
+        res = al.align([(x, y) for x in va for y in vb])
+        fit = {"robot_a": a, "robot_b": b, "views": [len(va), len(vb)]}
+        return fit | {k: v for k, v in res.items() if k != "hypotheses"}
+
+    edges, fits, links = {}, [], {}
+    with (
+        ThreadPoolExecutor(workers) as pool,
+        ThreadPoolExecutor(1) as linker,
+        tqdm(total=len(by_pair), desc="align", unit="pair", disable=quiet) as bar,
+    ):
+        for fit in pool.map(one, by_pair.items()):
+            bar.update()
+            if fit is None:
+                continue
+            fits.append(fit)
+            if fit["merged"]:
+                a, b = fit["robot_a"], fit["robot_b"]
+                edges[(a, b)] = {"T_a_b": np.array(fit["transform"]), "inliers": fit["inliers"]}
+                # the place database records the keyframe pairs co-visible under it
+                links[len(fits) - 1] = linker.submit(db.put_link, a, b, fit["transform"])
+    for k, fut in links.items():
+        fits[k]["link_overlaps"] = fut.result()
+    return edges, fits
+
+
+def edge_information(edges: dict, clouds: dict, voxel: float = 0.05) -> None:
+    """Each gated fit's information matrix (6x6, Open3D's order: rotation, translation)
+    from the two robots' whole map clouds: how well the overlapping surfaces pin each
+    degree of freedom, so the pose graph trusts a fit by its geometry, not by one number."""
+    down = {}
+    for (a, b), e in edges.items():
+        for r in (a, b):
+            if r not in down:
+                down[r] = clouds[r].o3d(voxel, normals=False)
+        e["information"] = np.asarray(
+            REG.get_information_matrix_from_point_clouds(down[b], down[a], 1.5 * voxel, e["T_a_b"])
+        )
+
+
+def write_outputs(out: Path, recs, kf_index, clouds, placed, edges, report, voxel: float) -> None:
+    """merged.ply (real colour, per-point robot index), pose_graph.g2o, trajectories of
+    every frame, overview.png and overlap_matrix.png."""
     (out / "trajectories").mkdir(exist_ok=True)
+    pts, cols, robot_idx, names, colours = [], [], [], [], []
     tracks, positions, downs = {}, {}, []
     for k, rec in enumerate(recs):
-        if rec.robot_id not in placed:
+        rid = rec.robot_id
+        if rid not in placed:
             continue
-        T = placed[rec.robot_id]
-        views = [load_view(rec, i) for i in kf_index[rec.robot_id]]
-        cloud = views_cloud(views, voxel=voxel, with_color=False)
-        p = apply(T, np.asarray(cloud.points))
-        colour = ROBOT_COLOURS[k % len(ROBOT_COLOURS)]
-        pts.append(p)
-        cols.append(np.tile(colour, (len(p), 1)))
-        names.append(rec.robot_id)
-        colours.append(colour)
-        poses = [T @ v.T_map_cam for v in views]
-        tracks[rec.robot_id] = np.array([P[:3, 3] for P in poses])
+        T = placed[rid]
+        p, c = clouds[rid].voxelised(voxel)
+        pts.append(apply(T, p))
+        cols.append(c)
+        robot_idx.append(np.full(len(p), k, np.uint16))
+        names.append(rid)
+        colours.append(ROBOT_COLOURS[k % len(ROBOT_COLOURS)])
+        kfs = [rec.frames[i] for i in kf_index[rid]]
+        poses = [T @ f.T_map_cam for f in kfs]
+        tracks[rid] = np.array([P[:3, 3] for P in poses])
         downs.extend(P[:3, 1] for P in poses)  # each camera's image-down axis
-        positions[rec.robot_id] = {
-            round(v.stamp, 6): P[:3, 3] for v, P in zip(views, poses, strict=True)
-        }
-        lines = [f"# timestamp tx ty tz qx qy qz qw (global frame = {report['reference']}'s map)"]
-        lines += [
-            f"{v.stamp:.6f} " + " ".join(f"{x:.6f}" for x in pose_to_tum(P))
-            for v, P in zip(views, poses, strict=True)
-        ]
-        (out / "trajectories" / f"{rec.robot_id}.txt").write_text("\n".join(lines) + "\n")
+        positions[rid] = {round(f.stamp, 6): P[:3, 3] for f, P in zip(kfs, poses, strict=True)}
+        _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, T, report["reference"])
     if pts:
-        write_ply(out / "merged.ply", np.concatenate(pts), np.concatenate(cols))
+        write_ply(
+            out / "merged.ply",
+            np.concatenate(pts),
+            np.concatenate(cols),
+            robot=np.concatenate(robot_idx),
+        )
         links = []
         for o in report["overlaps"]:
             if o.get("source", "cascade") != "cascade":
@@ -290,90 +403,47 @@ def _write_outputs(out: Path, recs, kf_index, placed, report, voxel: float) -> N
             pb = positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
             if pa is not None and pb is not None:
                 links.append((pa, pb))
-        _overview(out / "overview.png", pts, tracks, names, colours, links, report, downs)
-    _overlap_matrix(out / "overlap_matrix.png", [r.robot_id for r in recs], report)
+        pictures.overview(out / "overview.png", pts, tracks, names, colours, links, report, downs)
+    pictures.overlap_matrix(out / "overlap_matrix.png", [r.robot_id for r in recs], report)
+    write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
 
 
-def _n_cascade(report) -> int:
-    return sum(o.get("source", "cascade") == "cascade" for o in report["overlaps"])
+def _write_trajectory(path: Path, rec: Recording, T_ref_map: np.ndarray, ref: str) -> None:
+    """Every frame's camera pose in the global frame, TUM format."""
+    lines = [f"# timestamp tx ty tz qx qy qz qw (camera to {ref}'s map frame)"]
+    lines += [
+        f"{f.stamp:.6f} " + " ".join(f"{x:.6f}" for x in pose_to_tum(T_ref_map @ f.T_map_cam))
+        for f in rec.frames
+        if f.T_map_cam is not None
+    ]
+    path.write_text("\n".join(lines) + "\n")
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _top_down_basis(points: np.ndarray, downs) -> np.ndarray:
-    """Two axes (3, 2) spanning the floor plane. Gravity: the mean image-down axis of the
-    cameras, when they agree (upright cameras on robots or in hands); otherwise the
-    points' axis of least spread."""
-    c = points - points.mean(0)
-    down = np.mean(downs, axis=0) if len(downs) else np.zeros(3)
-    if np.linalg.norm(down) > 0.5:
-        g = down / np.linalg.norm(down)
-        flat = c - np.outer(c @ g, g)
-        _, V = np.linalg.eigh(np.cov(flat.T))
-        u = V[:, 2]
-        return np.stack([u, np.cross(g, u)], axis=1)
-    _, V = np.linalg.eigh(np.cov(c.T))
-    return V[:, [2, 1]]
+def write_g2o(path: Path, ids: list[str], placed: dict, edges: dict) -> None:
+    """The robots' pose graph in g2o's SE3 format: one vertex per placed robot (its map
+    frame in the reference's), one edge per gated pairwise fit, information scaled by the
+    fit's inliers. The reference's vertex is fixed."""
+    idx = {r: k for k, r in enumerate(ids)}
+    lines = [f"# fleetmap pose graph: vertex k = robot {', '.join(ids)}"]
+    for r in ids:
+        if r in placed:
+            lines.append(f"VERTEX_SE3:QUAT {idx[r]} " + _g2o_pose(placed[r]))
+    lines.append(f"FIX {idx[ids[0]]}")
+    for (a, b), e in edges.items():
+        info = _g2o_information(e.get("information", np.eye(6) * max(float(e["inliers"]), 1.0)))
+        upper = " ".join(f"{info[i, j]:g}" for i in range(6) for j in range(i, 6))
+        lines.append(f"EDGE_SE3:QUAT {idx[a]} {idx[b]} {_g2o_pose(e['T_a_b'])} {upper}")
+    path.write_text("\n".join(lines) + "\n")
 
 
-def _overview(path: Path, pts, tracks, names, colours, links, report, downs=()) -> None:
-    """Top-down picture: map points per robot, trajectories, overlap links (grey)."""
-    plt = _plt()
-    allp = np.concatenate(pts)
-    c = allp.mean(0)
-    basis = _top_down_basis(allp, downs)
-    fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
-    for p, name, colour in zip(pts, names, colours, strict=True):
-        uv = (p[:: max(1, len(p) // 20000)] - c) @ basis
-        ax.scatter(uv[:, 0], uv[:, 1], s=0.3, color=colour, alpha=0.4)
-        tr = (tracks[name] - c) @ basis
-        ax.plot(tr[:, 0], tr[:, 1], "-o", ms=2, color=colour * 0.7, label=name)
-    for pa, pb in links:
-        uv = (np.stack([pa, pb]) - c) @ basis
-        ax.plot(uv[:, 0], uv[:, 1], "-", color="0.3", lw=0.6, alpha=0.6)
-    ax.set_aspect("equal")
-    ax.legend(loc="best")
-    ax.set_title(
-        f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
-        f"{_n_cascade(report)} verified overlaps (grey), reference "
-        f"{report['reference']}"
-    )
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+def _g2o_information(info: np.ndarray) -> np.ndarray:
+    """Open3D's (rotation, translation) information to g2o's (translation, quaternion
+    vector): blocks swapped, rotation scaled for the half angle (dtheta = 2 dq)."""
+    J = np.zeros((6, 6))
+    J[0:3, 3:6] = 2.0 * np.eye(3)  # rotation <- quaternion vector
+    J[3:6, 0:3] = np.eye(3)  # translation <- translation
+    return J.T @ info @ J
 
 
-def _overlap_matrix(path: Path, names: list[str], report) -> None:
-    """Verified keyframe pairs between every two robots, as a matrix (thesis Fig. 1.1)."""
-    plt = _plt()
-    k = {n: i for i, n in enumerate(names)}
-    M = np.zeros((len(names), len(names)), int)
-    for o in report["overlaps"]:
-        i, j = k[o["robot_a"]], k[o["robot_b"]]
-        M[i, j] += 1
-        M[j, i] += 1
-    fig, ax = plt.subplots(figsize=(1.2 + 0.6 * len(names), 1 + 0.6 * len(names)), dpi=110)
-    ax.imshow(M, cmap="Blues")
-    for i in range(len(names)):
-        for j in range(len(names)):
-            ax.text(
-                j,
-                i,
-                str(M[i, j]),
-                ha="center",
-                va="center",
-                color="white" if M[i, j] > M.max() / 2 else "black",
-            )
-    ax.set_xticks(range(len(names)), names, rotation=45, ha="right")
-    ax.set_yticks(range(len(names)), names)
-    ax.set_title("verified pairs")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+def _g2o_pose(T: np.ndarray) -> str:
+    return " ".join(f"{x:.9f}" for x in pose_to_tum(T))

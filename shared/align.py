@@ -31,7 +31,15 @@ from shared.correspondences import (
 from shared.errors import BadInput
 from shared.estimators import MLPEstimator, fit_affine
 from shared.geometry import apply, invert, transform_error
-from shared.mapcloud import REG, free_space_check, icp, overlap_fitness, views_cloud
+from shared.mapcloud import (
+    REG,
+    ROBOT_COLOURS,
+    ViewsCloud,
+    free_space_check,
+    icp,
+    overlap_fitness,
+    views_cloud,
+)
 from shared.registration import kabsch, ransac_rigid
 
 log = logging.getLogger(__name__)
@@ -259,8 +267,9 @@ def _align(C: Correspondences, R: Correspondences, pairs, p: AlignParams) -> Ali
         return AlignResult(False, "no rigid consensus among the correspondences")
     views_a = [a for a, _ in _unique(pairs, 0)]
     views_b = [b for _, b in _unique(pairs, 1)]
+    clouds = ViewsCloud(views_a), ViewsCloud(views_b)
     if p.use_icp:
-        best, rivals = _geometric_choice(hyps, R, views_a, views_b, p)
+        best, rivals = _geometric_choice(hyps, R, views_a, views_b, clouds, p)
     else:
         hyps.sort(key=lambda h: -h.support)
         best, rivals = hyps[0], []
@@ -322,7 +331,7 @@ def _align(C: Correspondences, R: Correspondences, pairs, p: AlignParams) -> Ali
             mlp = MLPEstimator().fit(R.X[idx], R.Y[idx])
             # a correction, not a reshaping: over B's whole map (beyond the matches, where
             # a network fitted to noise can bend away) it must stay near the rigid fit
-            pb = np.asarray(views_cloud(views_b, voxel=p.coarse_voxel_m).points)
+            pb = np.asarray(clouds[1].at(p.coarse_voxel_m).points)
             bend = float(np.max(np.linalg.norm(mlp.transform(pb) - apply(T, pb), axis=1)))
             if bend <= 2 * p.max_holdout_m:
                 out.mlp = mlp
@@ -339,7 +348,7 @@ def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, 
     return float(np.minimum(r, tol).mean()), int(np.count_nonzero(r < tol))
 
 
-def _geometric_choice(hyps, R: Correspondences, views_a, views_b, p: AlignParams):
+def _geometric_choice(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     """Coarse: point-to-plane ICP of every distinct hypothesis on coarse clouds, judged by
     the free-space test; those that keep visual support (at least `min_inliers` raw
     matches agreeing) are judged again on the fine clouds, the best few; the winner is
@@ -350,10 +359,14 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, p: AlignParams
     Why two refinements: in a room of floor, walls and desks, fine point-to-plane ICP
     slides along the planes (SUN3D: 8-12 cm from the ground truth, started at the ground
     truth itself) where colour texture pins the slide (2-3 cm); on exact simulated data the
-    plain point-to-plane fit is the better one (0.08 against 0.2-2 cm). The matches, an
-    independent measurement, decide. See docs/ALIGNER.md."""
+    plain point-to-plane fit is the better one (0.08 against 0.2-2 cm), and where colour is
+    not registered to depth, colour pulls the fit off (HoloLens lounge: 1.6 cm coloured, 1.0
+    cm geometric). The depth decides: the refinement whose surfaces sit closest
+    (`surface_rmse`, depth only) is kept. (The raw matches decided before; their truncated
+    costs differed by 0.1% between the two and chose colour on the HoloLens.) See
+    docs/ALIGNER.md."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
-    ca0, cb0 = views_cloud(views_a, voxel=v0), views_cloud(views_b, voxel=v0)
+    ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
     probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
     hyps = sorted(hyps, key=lambda h: -h.support)
     hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
@@ -367,18 +380,21 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, p: AlignParams
     backed = [h for h in hyps if h.support >= p.min_inliers] or hyps
     backed.sort(key=lambda h: -h.score)
     top = backed[: p.refine]
-    ca1, cb1 = views_cloud(views_a, voxel=v1), views_cloud(views_b, voxel=v1)
+    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
     for h in top:
         _judge(h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
     top.sort(key=lambda h: -h.score)
     best = top[0]
-    T, _, _ = icp(cb1, ca1, best.T_a_b, distances=(3 * v1, 1.5 * v1, v1))
+    # the wide distances on the coarser colour scale's cloud, the last on the fine one
+    vm = 4 * v1 / 3
+    T, _, _ = icp(clouds[1].at(vm), clouds[0].at(vm), best.T_a_b, (3 * v1, 1.5 * v1), 20)
+    T, _, _ = icp(cb1, ca1, T, distances=(v1,), iterations=20)
     refined = [(T, best.source + "+icp")]
     if p.colour_icp and ca1.has_colors() and cb1.has_colors():
         T = best.T_a_b
         try:
-            for v in (4 * v1 / 3, 2 * v1 / 3):
-                ca, cb = views_cloud(views_a, voxel=v), views_cloud(views_b, voxel=v)
+            for v in (vm, 2 * v1 / 3):
+                ca, cb = clouds[0].at(v), clouds[1].at(v)
                 r = REG.registration_colored_icp(
                     cb,
                     ca,
@@ -391,7 +407,7 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, p: AlignParams
             refined.append((T, best.source + "+colour"))
         except RuntimeError:  # too few points with colour gradients
             pass
-    for T, source in sorted(refined, key=lambda c: _visual_cost(c[0], R, p.ransac_tol_m)[0]):
+    for T, source in sorted(refined, key=lambda c: surface_rmse(cb1, ca1, c[0], 1.5 * v1)):
         dt, dr = transform_error(T, best.T_a_b)
         if dt <= p.rival_m and dr <= p.rival_deg:  # a refinement, not a jump elsewhere
             polished = Hypothesis(T, best.support, source)
@@ -402,6 +418,16 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, p: AlignParams
     return best, top[1:]
 
 
+def surface_rmse(source, target, T: np.ndarray, distance: float) -> float:
+    """RMS distance (metres) of the source points that land within `distance` of the
+    target under T, a tenth more for every tenth of the source that does not: how closely
+    two maps' surfaces sit, measured on depth alone."""
+    ev = REG.evaluate_registration(source, target, distance, T)
+    if ev.fitness == 0:
+        return float("inf")
+    return float(ev.inlier_rmse) * (1.0 + (1.0 - ev.fitness))
+
+
 def _unique(pairs, side: int):
     seen, out = set(), []
     for pr in pairs:
@@ -410,20 +436,6 @@ def _unique(pairs, side: int):
             seen.add(id(v))
             out.append(pr)
     return out
-
-
-ROBOT_COLOURS = np.array(
-    [
-        [0.85, 0.25, 0.2],
-        [0.2, 0.45, 0.9],
-        [0.3, 0.7, 0.3],
-        [0.9, 0.7, 0.1],
-        [0.6, 0.3, 0.8],
-        [0.1, 0.7, 0.8],
-        [0.9, 0.4, 0.6],
-        [0.5, 0.5, 0.5],
-    ]
-)
 
 
 def baseline(pairs, method: str, p: AlignParams) -> AlignResult:

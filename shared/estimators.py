@@ -17,10 +17,23 @@ import logging
 import time
 
 import numpy as np
-import torch
 
 from shared.errors import BadInput, NotEnoughCorrespondences
 from shared.registration import kabsch
+
+
+class _LazyTorch:
+    """torch, imported on first use: only the MLP needs it, and importing it costs about a
+    second at every service start."""
+
+    def __getattr__(self, name: str):
+        import torch as real
+
+        globals()["torch"] = real
+        return getattr(real, name)
+
+
+torch = _LazyTorch()
 
 log = logging.getLogger(__name__)
 

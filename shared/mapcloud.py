@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -11,6 +13,53 @@ from shared.camera import depth_to_points
 from shared.geometry import apply
 
 REG = o3d.pipelines.registration
+
+ROBOT_COLOURS = np.array(
+    [
+        [0.85, 0.25, 0.2],
+        [0.2, 0.45, 0.9],
+        [0.3, 0.7, 0.3],
+        [0.9, 0.7, 0.1],
+        [0.6, 0.3, 0.8],
+        [0.1, 0.7, 0.8],
+        [0.9, 0.4, 0.6],
+        [0.5, 0.5, 0.5],
+    ]
+)
+
+
+@dataclass
+class MapCloud:
+    """One robot's map cloud from all its keyframes, as extracted (not yet voxelised).
+
+    points : ndarray of shape (N, 3) float32, robot's map frame (metres).
+    colours : ndarray of shape (N, 3) uint8, RGB.
+    """
+
+    points: np.ndarray
+    colours: np.ndarray
+
+    @classmethod
+    def from_keyframes(cls, keyframes) -> MapCloud:
+        return cls(
+            np.concatenate([k.points for k in keyframes]),
+            np.concatenate([k.colours for k in keyframes]),
+        )
+
+    def o3d(self, voxel: float, normals: bool = True) -> o3d.geometry.PointCloud:
+        """Voxel down-sampled Open3D cloud with colours in 0..1 (and normals)."""
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points.astype(np.float64)))
+        pc.colors = o3d.utility.Vector3dVector(self.colours / 255.0)
+        pc = pc.voxel_down_sample(voxel)
+        if normals:
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
+        return pc
+
+    def voxelised(self, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points (M, 3) float64 and colours (M, 3) uint8, one per occupied voxel."""
+        pc = self.o3d(voxel, normals=False)
+        cols = np.round(np.asarray(pc.colors) * 255).astype(np.uint8)
+        return np.asarray(pc.points), cols
 
 
 def views_cloud(
@@ -34,6 +83,27 @@ def views_cloud(
     pc = pc.voxel_down_sample(voxel)
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
     return pc
+
+
+class ViewsCloud:
+    """Views back-projected once (every `stride`-th pixel), voxelised clouds with normals
+    made on demand and kept per voxel size: the aligner looks at the same views at three
+    or four scales."""
+
+    def __init__(self, views: Iterable, stride: int = 4, max_depth: float = 6.0):
+        pts, cols = [], []
+        for v in views:
+            p, uv = depth_to_points(v.depth, v.intrinsics, stride=stride, max_depth=max_depth)
+            pts.append(apply(v.T_map_cam, p))
+            rgb = v.rgb if v.rgb.ndim == 3 else np.repeat(v.rgb[..., None], 3, axis=2)
+            cols.append(rgb[uv[:, 1], uv[:, 0], ::-1])
+        self.raw = MapCloud(np.concatenate(pts), np.concatenate(cols))
+        self._at: dict[float, o3d.geometry.PointCloud] = {}
+
+    def at(self, voxel: float) -> o3d.geometry.PointCloud:
+        if voxel not in self._at:
+            self._at[voxel] = self.raw.o3d(voxel)
+        return self._at[voxel]
 
 
 def icp(
@@ -66,23 +136,43 @@ def overlap_fitness(source, target, T: np.ndarray, distance: float) -> float:
     return float(REG.evaluate_registration(source, target, distance, T).fitness)
 
 
-def write_ply(path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """Binary PLY of points (N, 3) with optional colours (N, 3) in 0..1."""
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+def write_ply(
+    path, points: np.ndarray, colors: np.ndarray | None = None, robot: np.ndarray | None = None
+) -> None:
+    """Binary little-endian PLY: points (N, 3) as float32 x y z, colours (N, 3) as uchar
+    red green blue (given in 0..1 floats or uint8), and optionally a per-point `robot`
+    index (ushort) that CloudCompare, PCL and Open3D's tensor reader show as a scalar field."""
+    Path(path).write_bytes(ply_bytes(points, colors, robot))
+
+
+def ply_bytes(
+    points: np.ndarray, colors: np.ndarray | None = None, robot: np.ndarray | None = None
+) -> bytes:
+    """Binary PLY file contents (see `write_ply`)."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"Expected points of shape (N, 3), got {points.shape}")
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    props = ["float x", "float y", "float z"]
     if colors is not None:
-        pc.colors = o3d.utility.Vector3dVector(np.asarray(colors, np.float64))
-    o3d.io.write_point_cloud(str(path), pc, write_ascii=False)
-
-
-def ply_bytes(points: np.ndarray, colors: np.ndarray | None = None) -> bytes:
-    """Binary PLY file contents of points (N, 3) and optional colours (N, 3) in 0..1."""
-    import tempfile
-    from pathlib import Path
-
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "cloud.ply"
-        write_ply(path, points, colors)
-        return path.read_bytes()
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        props += ["uchar red", "uchar green", "uchar blue"]
+    if robot is not None:
+        fields.append(("robot", "<u2"))
+        props.append("ushort robot")
+    rows = np.empty(len(points), dtype=fields)
+    for k, axis in enumerate("xyz"):
+        rows[axis] = points[:, k]
+    if colors is not None:
+        c = np.asarray(colors)
+        c = c if c.dtype == np.uint8 else np.clip(np.round(c * 255), 0, 255).astype(np.uint8)
+        for k, name in enumerate(("red", "green", "blue")):
+            rows[name] = c[:, k]
+    if robot is not None:
+        rows["robot"] = robot
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {p}" for p in props] + ["end_header"]
+    return ("\n".join(header) + "\n").encode() + rows.tobytes()
 
 
 def free_space_check(

@@ -7,8 +7,19 @@ import numpy as np
 
 from services.cli import main
 from services.merge import spanning_placement
-from shared.geometry import transform_error
+from shared.geometry import pose_from_tum, transform_error
 
+PLY_ROW = np.dtype(
+    [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+        ("robot", "<u2"),
+    ]
+)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fr1_pair"
 
 
@@ -24,8 +35,20 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):
     dt, dr = transform_error(T, np.loadtxt(EXAMPLE / "T_alpha_bravo.txt"))
     assert dt < 0.05 and dr < 2.0
     assert report["overlaps"][0]["inliers"] >= 50
-    assert set(report["timing_s"]) == {"extract", "ingest", "overlaps", "align", "total"}
-    assert (out / "merged.ply").read_bytes().startswith(b"ply")
+    assert {"extract", "ingest", "overlaps", "align", "total"} <= set(report["timing_s"])
+    assert report["schema_version"] == 2 and "T_ref_R" in report["transform_convention"]
+    ply = (out / "merged.ply").read_bytes()
+    header = ply[: ply.index(b"end_header")].decode()
+    assert "property ushort robot" in header and "property uchar red" in header
+    n = int(header.split("element vertex ")[1].split()[0])
+    rows = np.frombuffer(ply[ply.index(b"end_header") + 11 :], dtype=PLY_ROW, count=n)
+    assert set(np.unique(rows["robot"])) == {0, 1}  # both robots, indexed in input order
+    assert rows["red"].std() > 10  # image colour, not one colour per robot
+    g2o = (out / "pose_graph.g2o").read_text().splitlines()
+    assert sum(line.startswith("VERTEX_SE3:QUAT") for line in g2o) == 2
+    edge = next(line for line in g2o if line.startswith("EDGE_SE3:QUAT")).split()
+    T_g2o = pose_from_tum(np.array(edge[3:6], float), np.array(edge[6:10], float))
+    np.testing.assert_allclose(T_g2o, report["transforms"]["bravo"], atol=1e-6)
     assert (out / "overview.png").stat().st_size > 10_000
     traj = (out / "trajectories" / "bravo.txt").read_text().splitlines()
     assert len(traj) == 2 and traj[1].startswith("1305031102.275800")

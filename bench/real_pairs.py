@@ -1,0 +1,221 @@
+"""Every real multi-frame pair in ../shared/data, `fleetmap merge` beside the map_merge_3d
+recipe, on accuracy and time.
+
+    .venv/bin/python bench/real_pairs.py [--data ../shared/data] [--seeds 3] [--only NAME ...]
+
+Cases (robots cut from the real recordings by frame range, each cut moved into its own
+random map frame; the true transforms follow from the recordings' poses and T_a_b.txt):
+
+- sun3d: the SUN3D study room's two robots (wide baseline, self-similar cubicles);
+- hololens: the HoloLens lounge's two robots (the walk revisits the kitchen);
+- hololens3: three robots, hl_a cut in two with a short shared stretch, plus hl_b;
+- hololens_far: the first 60 frames of hl_a (the corridor) against the last 60 of hl_b: little
+  or no true overlap, where "unmerged" is a right answer.
+
+Per robot merged into the reference: mean displacement of its fused map points against the
+truth (what a merged map shows), translation/rotation error, and whether it merged; the
+end-to-end wall time of `fleetmap merge` (a subprocess, start-up included). The recipe: every
+10th frame of each robot fused at 5 cm, FPFH + RANSAC + point-to-plane ICP (Open3D), three
+seeds, for each robot against the reference; its time per pair. `true overlap` is the share
+of the robot's fused map within 5 cm of the reference's under the true transform.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from shared.align import fpfh_ransac_icp  # noqa: E402
+from shared.dataset import read_recording  # noqa: E402
+from shared.geometry import apply, pose_to_tum, transform_error  # noqa: E402
+from shared.mapcloud import views_cloud  # noqa: E402
+from shared.pairs import load_view  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+
+
+def random_frame(rng: np.random.Generator) -> np.ndarray:
+    """A random rigid map frame: T_new_old."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
+    T[:3, 3] = rng.uniform(-5, 5, 3)
+    return T
+
+
+def write_cut(src: Path, frames: slice, dst: Path, T_new_old: np.ndarray) -> None:
+    """A robot folder of `src`'s frames[frames], its poses moved by T_new_old; images linked."""
+    rec = read_recording(src)
+    dst.mkdir(parents=True)
+    for sub in ("rgb", "depth"):
+        (dst / sub).mkdir()
+    if (src / "camera.json").exists():
+        (dst / "camera.json").write_text((src / "camera.json").read_text())
+    rgb, depth, gt = [], [], []
+    for f in rec.frames[frames]:
+        for sub, path, rows in (("rgb", f.rgb_path, rgb), ("depth", f.depth_path, depth)):
+            _link(path, dst / sub / path.name)
+            rows.append(f"{f.stamp:.6f} {sub}/{path.name}")
+        gt.append(
+            f"{f.stamp:.6f} " + " ".join(f"{x:.9f}" for x in pose_to_tum(T_new_old @ f.T_map_cam))
+        )
+    for name, rows in (("rgb.txt", rgb), ("depth.txt", depth), ("groundtruth.txt", gt)):
+        (dst / name).write_text("\n".join(rows) + "\n")
+
+
+def _link(src: Path, dst: Path) -> None:
+    """A hard link where the file system allows (the reader refuses symlinks that leave
+    the robot folder), else a copy."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def cases(data: Path) -> dict[str, list[tuple[str, Path, slice, np.ndarray]]]:
+    """name -> robots as (name, source folder, frame range, T_source_srcmap) where the
+    source map is a common frame per case (A's for two-folder sets)."""
+    sun, hl = data / "sun3d_studyroom", data / "hololens_lounge"
+    out = {}
+    if sun.exists():
+        T = np.loadtxt(sun / "T_a_b.txt")
+        out["sun3d"] = [
+            ("A", sun / "robot_a", slice(None), np.eye(4)),
+            ("B", sun / "robot_b", slice(None), T),
+        ]
+    if hl.exists():
+        T = np.loadtxt(hl / "T_a_b.txt")
+        a, b = hl / "hl_a", hl / "hl_b"
+        out["hololens"] = [("A", a, slice(None), np.eye(4)), ("B", b, slice(None), T)]
+        out["hololens3"] = [
+            ("A", a, slice(0, 110), np.eye(4)),
+            ("B", a, slice(90, None), np.eye(4)),
+            ("C", b, slice(None), T),
+        ]
+        out["hololens_far"] = [("A", a, slice(0, 60), np.eye(4)), ("B", b, slice(-60, None), T)]
+    return out
+
+
+def every_nth_views(robot_dir: Path, n: int = 10):
+    rec = read_recording(robot_dir)
+    return [load_view(rec, i) for i in range(0, len(rec), n)]
+
+
+def run_case(name: str, robots, work: Path, seeds: int, rng) -> list[dict]:
+    frames = {}  # robot -> T_robotmap_common
+    dirs = []
+    for rname, src, sl, T_common_src in robots:
+        M = random_frame(rng)  # robot map <- source map
+        d = work / name / rname
+        write_cut(src, sl, d, M)
+        frames[rname] = M @ np.linalg.inv(T_common_src)
+        dirs.append(f"{rname}={d}")
+    out = work / f"{name}-out"
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [str(ROOT / ".venv" / "bin" / "fleetmap"), "merge", *dirs, "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        raise RuntimeError(f"{name}: merge failed: {proc.stderr[-2000:]}")
+    report = json.loads((out / "report.json").read_text())
+    ref = robots[0][0]
+    clouds = {
+        r: views_cloud(every_nth_views(work / name / r, 5), voxel=0.05, with_color=False)
+        for r, *_ in robots
+    }
+    rows = []
+    for rname, *_ in robots[1:]:
+        T_true = frames[ref] @ np.linalg.inv(frames[rname])
+        pb = np.asarray(clouds[rname].points)
+        pa = np.asarray(clouds[ref].points)
+        import open3d as o3d
+
+        tree = o3d.geometry.KDTreeFlann(clouds[ref])
+        moved = apply(T_true, pb)
+        near = sum(tree.search_knn_vector_3d(p, 1)[2][0] < 0.05**2 for p in moved[::5])
+        row = {
+            "case": name,
+            "robot": f"{ref}<-{rname}",
+            "true_overlap": near / len(moved[::5]),
+            "wall_s": wall,
+            "timing": report["timing_s"],
+        }
+        T = report["transforms"].get(rname)
+        if T is not None:
+            T = np.array(T)
+            dt, dr = transform_error(T, T_true)
+            row |= {"merged": True, "mean_cm": 100 * _mean_disp(T, T_true, pb), "dt": dt, "dr": dr}
+        else:
+            row |= {"merged": False}
+        va, vb = every_nth_views(work / name / ref), every_nth_views(work / name / rname)
+        recipe = []
+        for seed in range(seeds):
+            t = time.perf_counter()
+            Tr, _ = fpfh_ransac_icp(va, vb, seed=seed)
+            recipe.append((100 * _mean_disp(Tr, T_true, pb), time.perf_counter() - t))
+        row["recipe"] = recipe
+        rows.append(row)
+        del pa
+    return rows
+
+
+def _mean_disp(T, T_true, pts) -> float:
+    return float(np.linalg.norm(apply(T, pts) - apply(T_true, pts), axis=1).mean())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--only", nargs="*", help="case names to run")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the random map frames")
+    args = ap.parse_args()
+    rng = np.random.default_rng(args.seed)
+    all_cases = cases(args.data)
+    if not all_cases:
+        sys.exit(f"real_pairs.py: no recordings under {args.data}")
+    print(
+        "| case | robots | true overlap | fleetmap: merged, mean map-point error, t / R error | "
+        "fleetmap end to end | recipe mean error (3 seeds) | recipe time per pair |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory(prefix="fleetmap-real-") as tmp:
+        for name, robots in all_cases.items():
+            if args.only and name not in args.only:
+                continue
+            for r in run_case(name, robots, Path(tmp), args.seeds, rng):
+                ours = (
+                    f"yes, {r['mean_cm']:.1f} cm, {100 * r['dt']:.1f} cm / {r['dr']:.2f} deg"
+                    if r["merged"]
+                    else "no"
+                )
+                rec = ", ".join(f"{e:.1f}" for e, _ in r["recipe"])
+                rt = np.mean([t for _, t in r["recipe"]])
+                print(
+                    f"| {r['case']} | {r['robot']} | {100 * r['true_overlap']:.0f}% | {ours} | "
+                    f"{r['wall_s']:.1f} s | {rec} cm | {rt:.1f} s |",
+                    flush=True,
+                )
+                print(f"<!-- {r['case']} {r['robot']} stages: {r['timing']} -->", flush=True)
+
+
+if __name__ == "__main__":
+    main()

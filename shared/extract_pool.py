@@ -1,0 +1,146 @@
+"""Keyframes of many robots extracted on every core: one pipeline stage of the merge.
+
+Each worker process reads a keyframe's colour and depth once and returns everything the
+later stages need from those images: the frame structure (for the place database) and the
+keyframe's share of the robot's map cloud (for the final refinement and `merged.ply`), so no
+stage reads the images again. Workers fork from a server that has already imported the
+extraction code (`forkserver`), so a pool starts in well under a second.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import os
+import sys
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.camera import Intrinsics, depth_to_points
+from shared.dataset import Recording, load_depth, load_rgb
+from shared.frame import Frame
+from shared.geometry import apply
+
+#: Every CLOUD_STRIDE-th pixel of a keyframe's depth goes into the map cloud.
+CLOUD_STRIDE = 4
+CLOUD_MAX_DEPTH_M = 6.0
+
+_extractor = None  # per worker process
+
+
+@dataclass
+class Keyframe:
+    """One extracted keyframe: frame structure and map-cloud share.
+
+    points : ndarray of shape (M, 3) float32, in the robot's map frame (metres).
+    colours : ndarray of shape (M, 3) uint8, RGB.
+    """
+
+    robot_id: str
+    index: int  # into the recording's frames
+    frame: Frame
+    points: np.ndarray
+    colours: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Task:
+    robot_id: str
+    index: int
+    stamp: float
+    rgb_path: Path
+    depth_path: Path
+    intrinsics: Intrinsics
+    T_map_cam: np.ndarray
+
+
+def _init(vocab_path) -> None:
+    import cv2
+
+    from shared.extract import FrameExtractor
+    from shared.vocabulary import load_vocabulary
+
+    cv2.setNumThreads(1)  # one process per core already
+    global _extractor
+    _extractor = FrameExtractor(load_vocabulary(vocab_path))
+
+
+def _extract(t: _Task) -> Keyframe:
+    rgb, depth = load_rgb(t.rgb_path), load_depth(t.depth_path)
+    frame = _extractor(t.robot_id, t.stamp, rgb, depth, t.intrinsics, t.T_map_cam)
+    p, uv = depth_to_points(depth, t.intrinsics, stride=CLOUD_STRIDE, max_depth=CLOUD_MAX_DEPTH_M)
+    points = apply(t.T_map_cam, p).astype(np.float32)
+    colours = (
+        rgb[uv[:, 1], uv[:, 0], ::-1]
+        if rgb.ndim == 3
+        else np.repeat(rgb[uv[:, 1], uv[:, 0], None], 3, axis=1)
+    )
+    return Keyframe(t.robot_id, t.index, frame, points, np.ascontiguousarray(colours))
+
+
+def _tasks(recs: list[Recording], kf_index: dict[str, list[int]]) -> list[_Task]:
+    out = []
+    for rec in recs:
+        for i in kf_index[rec.robot_id]:
+            f = rec.frames[i]
+            out.append(
+                _Task(
+                    rec.robot_id, i, f.stamp, f.rgb_path, f.depth_path, rec.intrinsics, f.T_map_cam
+                )
+            )
+    return out
+
+
+@contextlib.contextmanager
+def _main_hidden():
+    """Workers need only this package: keep multiprocessing from running the caller's main
+    script again in each of them (a console script, a notebook, `python -` from stdin)."""
+    main = sys.modules["__main__"]
+    saved = {k: main.__dict__[k] for k in ("__spec__", "__file__") if k in main.__dict__}
+    main.__spec__ = None
+    main.__dict__.pop("__file__", None)
+    try:
+        yield
+    finally:
+        main.__dict__.update(saved)
+
+
+def default_workers() -> int:
+    """Worker processes: every core this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def extract_keyframes(
+    recs: list[Recording],
+    kf_index: dict[str, list[int]],
+    vocab_path=None,
+    workers: int | None = None,
+) -> Iterator[Keyframe]:
+    """Every keyframe of every robot, robot by robot in time order, extracted by
+    `workers` processes (default: every core; 1 = in this process). The work starts at
+    once, before the first keyframe is asked for; closing the iterator stops it."""
+    tasks = _tasks(recs, kf_index)
+    workers = default_workers() if workers is None else workers
+    if workers <= 1 or len(tasks) < 8:
+        _init(vocab_path)
+        return (_extract(t) for t in tasks)
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["shared.extract", "shared.extract_pool"])
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(vocab_path,))
+    with _main_hidden():  # workers start here, on submission
+        results = pool.map(_extract, tasks, chunksize=2)  # every task submitted now
+
+    def ordered() -> Iterator[Keyframe]:
+        try:
+            yield from results
+        finally:
+            pool.shutdown(cancel_futures=True)
+
+    return ordered()
