@@ -20,6 +20,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -279,19 +280,32 @@ def _services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | 
     return place_db, aligner
 
 
-def ingest(keyframes, db, total: int, timing: dict, quiet: bool) -> dict[str, MapCloud]:
-    """POST every extracted keyframe; returns each robot's map cloud (all keyframes)."""
+def ingest(
+    keyframes, db, total: int, timing: dict, quiet: bool, in_flight: int = 8
+) -> dict[str, MapCloud]:
+    """POST every extracted keyframe, up to `in_flight` at once (the place database commits
+    concurrent keyframes together); returns each robot's map cloud (all keyframes).
+
+    timing["extract"]: time spent waiting for the extraction workers; timing["ingest"]:
+    from the last keyframe extracted to the last one acknowledged."""
     parts: dict[str, list] = {}
     bar = tqdm(total=total, desc="extract+ingest", unit="kf", disable=quiet)
-    t = time.perf_counter()
-    for kf in keyframes:
-        t2 = time.perf_counter()
-        timing["extract"] += t2 - t
-        db.add_keyframe(kf.frame)
-        parts.setdefault(kf.robot_id, []).append(kf)
-        bar.update()
+    pending: deque = deque()
+    with ThreadPoolExecutor(4) as posters:
         t = time.perf_counter()
-        timing["ingest"] += t - t2
+        for kf in keyframes:
+            timing["extract"] += time.perf_counter() - t
+            pending.append(posters.submit(db.add_keyframe, kf.frame))
+            parts.setdefault(kf.robot_id, []).append(kf)
+            while len(pending) > in_flight or (pending and pending[0].done()):
+                pending.popleft().result()  # raises the first failure
+                bar.update()
+            t = time.perf_counter()
+        t = time.perf_counter()
+        while pending:
+            pending.popleft().result()
+            bar.update()
+        timing["ingest"] = time.perf_counter() - t
     bar.close()
     return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}
 

@@ -58,13 +58,14 @@ def _gray(image: np.ndarray) -> np.ndarray:
     raise BadInput(f"Expected an image of shape (H, W) or (H, W, 3), got {image.shape}")
 
 
-def _pack_octave(size: float, max_octave: int) -> int:
-    """OpenCV's packed (octave, layer) for a keypoint of this size, so SIFT samples the
-    pyramid level that matches the region instead of a huge window at full resolution."""
-    s = max(size / (2.0 * SIFT_SIGMA), 1.0)
-    e = min(np.log2(s), max_octave + (SIFT_LAYERS - 1) / SIFT_LAYERS)
-    octave = int(np.floor(e))
-    layer = int(np.clip(round((e - octave) * SIFT_LAYERS), 0, SIFT_LAYERS - 1))
+def _pack_octaves(sizes: np.ndarray, max_octave: int) -> np.ndarray:
+    """OpenCV's packed (octave, layer) for keypoints of these sizes (N,), so SIFT samples
+    the pyramid level that matches each region instead of a huge window at full
+    resolution."""
+    s = np.maximum(sizes / (2.0 * SIFT_SIGMA), 1.0)
+    e = np.minimum(np.log2(s), max_octave + (SIFT_LAYERS - 1) / SIFT_LAYERS)
+    octave = np.floor(e).astype(np.int64)
+    layer = np.clip(np.round((e - octave) * SIFT_LAYERS), 0, SIFT_LAYERS - 1).astype(np.int64)
     return (octave & 255) | (layer << 8)
 
 
@@ -148,8 +149,9 @@ def detect_and_describe(image: np.ndarray, params: FeatureParams = DEFAULT_PARAM
     if len(kps) < params.min_mser_features:
         kps += _sift_topup(gray, kps, params.max_features - len(kps))
     max_octave = max(int(np.log2(min(gray.shape))) - 5, 0)
-    for k in kps:
-        k.octave = _pack_octave(k.size, max_octave)
+    octaves = _pack_octaves(np.array([k.size for k in kps]), max_octave)
+    for k, o in zip(kps, octaves.tolist(), strict=True):
+        k.octave = o
     sift = cv2.SIFT_create(nOctaveLayers=SIFT_LAYERS, sigma=SIFT_SIGMA)
     kps, desc = sift.compute(gray, kps) if kps else ([], None)
     if desc is None or len(kps) == 0:

@@ -28,6 +28,11 @@ def sun3d() -> Path:
 
 
 @pytest.fixture(scope="session")
+def hololens() -> Path:
+    return data_path("hololens_lounge")
+
+
+@pytest.fixture(scope="session")
 def corridor() -> Path:
     return data_path("rtabmap_corridor")
 

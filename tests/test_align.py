@@ -142,3 +142,23 @@ def test_sun3d_parts_are_merged_right_or_not_at_all(sun3d, part_a, part_b, swap)
         assert dt < 0.15 and dr < 3.0, (dt, dr, res.to_dict())
     else:
         assert res.reason
+
+
+def test_surface_rmse_prefers_the_truth_to_a_slide(hololens):
+    """The refinement choice measures on depth alone: on real HoloLens maps, the true
+    alignment's surfaces sit closer than the same alignment slid 3 cm along any axis."""
+    from shared.align import surface_rmse
+    from shared.dataset import read_recording
+    from shared.mapcloud import views_cloud
+    from shared.pairs import load_view
+
+    clouds = []
+    for name in ("hl_a", "hl_b"):
+        rec = read_recording(hololens / name)
+        clouds.append(views_cloud([load_view(rec, i) for i in range(0, len(rec), 3)], voxel=0.03))
+    T = np.loadtxt(hololens / "T_a_b.txt")
+    best = surface_rmse(clouds[1], clouds[0], T, 0.045)
+    for axis in range(3):
+        slid = T.copy()
+        slid[axis, 3] += 0.03
+        assert surface_rmse(clouds[1], clouds[0], slid, 0.045) > best
