@@ -275,9 +275,14 @@ def _services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | 
         place_db = stack.enter_context(embedded_process("place-db", tmp))
     if aligner is None:
         aligner = stack.enter_context(embedded_service("aligner"))
-        # the MLP's torch (about a second to import) loads while the robots are ingested
-        threading.Thread(target=importlib.import_module, args=("torch",), daemon=True).start()
+        # Open3D and the MLP's torch (1.6 s to import) load while the robots are ingested
+        threading.Thread(target=_warm_up, args=("open3d", "torch"), daemon=True).start()
     return place_db, aligner
+
+
+def _warm_up(*modules: str) -> None:
+    for name in modules:
+        importlib.import_module(name)
 
 
 def ingest(

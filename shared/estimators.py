@@ -19,21 +19,10 @@ import time
 import numpy as np
 
 from shared.errors import BadInput, NotEnoughCorrespondences
+from shared.lazy import LazyModule
 from shared.registration import kabsch
 
-
-class _LazyTorch:
-    """torch, imported on first use: only the MLP needs it, and importing it costs about a
-    second at every service start."""
-
-    def __getattr__(self, name: str):
-        import torch as real
-
-        globals()["torch"] = real
-        return getattr(real, name)
-
-
-torch = _LazyTorch()
+torch = LazyModule("torch")  # only the MLP needs it
 
 log = logging.getLogger(__name__)
 

@@ -7,12 +7,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from shared.camera import depth_to_points
 from shared.geometry import apply
+from shared.lazy import LazyModule
 
-REG = o3d.pipelines.registration
+o3d = LazyModule("open3d")
+
+REG = LazyModule("open3d", "pipelines.registration")
 
 ROBOT_COLOURS = np.array(
     [
