@@ -227,8 +227,7 @@ def run_merge(
             ]
         timing["align"] = time.perf_counter() - t
     ids = [r.robot_id for r in recs]
-    if len(edges) >= len(recs):  # cycles: the pose graph weighs each fit by its geometry
-        edge_information(edges, clouds)
+    edge_information(edges, clouds)  # the pose graph and g2o weigh each fit by its geometry
     placed, chain = spanning_placement(ids, edges)
     placed, optimised = optimise_poses(placed, edges, ids[0], chain)
     report = {
