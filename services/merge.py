@@ -196,12 +196,14 @@ def run_merge(
     workers: int | None = None,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
-    overview.png and overlap_matrix.png. Stages: extract (every core) and ingest, overlaps,
-    align, refine on whole maps, place, write."""
+    overview.png and overlap_matrix.png. Stages: extract (every core) while the services
+    start, ingest, overlaps, align, place (spanning tree, pose graph), write; the place
+    database registers the links meanwhile."""
     out.mkdir(parents=True, exist_ok=True)
     timing = {"extract": 0.0, "ingest": 0.0, "overlaps": 0.0, "align": 0.0, "outputs": 0.0}
     t_all = time.perf_counter()
     kf_index = {r.robot_id: keyframe_indices(r, policy) for r in recs}
+    ids = [r.robot_id for r in recs]
     with contextlib.ExitStack() as stack:
         # the workers extract while the services start
         keyframes = extract_keyframes(recs, kf_index, vocab_path, workers)
@@ -216,20 +218,27 @@ def run_merge(
         _checked_vocabulary(db, vocab_path)
         clouds = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
         t = time.perf_counter()
-        overlaps, by_pair = find_overlaps(db, [r.robot_id for r in recs])
+        overlaps, by_pair = find_overlaps(db, ids)
         timing["overlaps"] = time.perf_counter() - t
         t = time.perf_counter()
-        edges, fits = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
+        edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
+        timing["align"] = time.perf_counter() - t
+        # placed and written while the place database registers the links
+        t = time.perf_counter()
+        edge_information(edges, clouds)  # the pose graph and g2o weigh each fit by it
+        placed, chain = spanning_placement(ids, edges)
+        placed, optimised = optimise_poses(placed, edges, ids[0], chain)
+        drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel)
+        timing["outputs"] = time.perf_counter() - t
+        t = time.perf_counter()
+        for k, future in links.items():
+            fits[k]["link_overlaps"] = future.result()
         for a, b in edges:
             overlaps += [
                 {k: p[k] for k in ("robot_a", "stamp_a", "robot_b", "stamp_b", "inliers", "source")}
                 for p in db.overlaps(a, b, source="link")
             ]
-        timing["align"] = time.perf_counter() - t
-    ids = [r.robot_id for r in recs]
-    edge_information(edges, clouds)  # the pose graph and g2o weigh each fit by its geometry
-    placed, chain = spanning_placement(ids, edges)
-    placed, optimised = optimise_poses(placed, edges, ids[0], chain)
+        timing["links"] = time.perf_counter() - t
     report = {
         "schema_version": REPORT_VERSION,
         "reference": ids[0],
@@ -259,8 +268,8 @@ def run_merge(
         },
     }
     t = time.perf_counter()
-    write_outputs(out, recs, kf_index, clouds, placed, edges, report, voxel)
-    timing["outputs"] = time.perf_counter() - t
+    write_pictures(out, ids, drawing, report)
+    timing["outputs"] += time.perf_counter() - t
     timing["total"] = time.perf_counter() - t_all
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
@@ -332,7 +341,7 @@ def find_overlaps(db, ids: list[str]) -> tuple[list[dict], dict]:
 def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, workers: int = 2):
     """Send each overlapping pair's views near its overlaps to the aligner (two pairs at a
     time); register each gated alignment with the place database, in the background.
-    Returns (edges, fits)."""
+    Returns (edges, fits, links: fit index -> future of the link overlaps recorded)."""
     recs_by_id = {r.robot_id: r for r in recs}
 
     def one(item):
@@ -349,9 +358,9 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
         return fit | {k: v for k, v in res.items() if k != "hypotheses"}
 
     edges, fits, links = {}, [], {}
+    linker = ThreadPoolExecutor(1)
     with (
         ThreadPoolExecutor(workers) as pool,
-        ThreadPoolExecutor(1) as linker,
         tqdm(total=len(by_pair), desc="align", unit="pair", disable=quiet) as bar,
     ):
         for fit in pool.map(one, by_pair.items()):
@@ -364,9 +373,8 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
                 edges[(a, b)] = {"T_a_b": np.array(fit["transform"]), "inliers": fit["inliers"]}
                 # the place database records the keyframe pairs co-visible under it
                 links[len(fits) - 1] = linker.submit(db.put_link, a, b, fit["transform"])
-    for k, fut in links.items():
-        fits[k]["link_overlaps"] = fut.result()
-    return edges, fits
+    linker.shutdown(wait=False)  # the submitted links still run
+    return edges, fits, links
 
 
 def edge_information(edges: dict, clouds: dict, voxel: float = 0.05) -> None:
@@ -383,47 +391,67 @@ def edge_information(edges: dict, clouds: dict, voxel: float = 0.05) -> None:
         )
 
 
-def write_outputs(out: Path, recs, kf_index, clouds, placed, edges, report, voxel: float) -> None:
-    """merged.ply (real colour, per-point robot index), pose_graph.g2o, trajectories of
-    every frame, overview.png and overlap_matrix.png."""
+@dataclasses.dataclass
+class Drawing:
+    """What the pictures need from the placed maps (all in the reference frame)."""
+
+    points: list = dataclasses.field(default_factory=list)  # per merged robot, (N, 3)
+    names: list = dataclasses.field(default_factory=list)
+    colours: list = dataclasses.field(default_factory=list)
+    tracks: dict = dataclasses.field(default_factory=dict)  # robot -> keyframe positions
+    positions: dict = dataclasses.field(default_factory=dict)  # robot -> {stamp: position}
+    downs: list = dataclasses.field(default_factory=list)  # cameras' image-down axes
+
+
+def write_maps(out: Path, recs, kf_index, clouds, placed, edges, voxel: float = 0.03) -> Drawing:
+    """merged.ply (image colour, per-point robot index), trajectories of every frame and
+    pose_graph.g2o; returns what the pictures need."""
     (out / "trajectories").mkdir(exist_ok=True)
-    pts, cols, robot_idx, names, colours = [], [], [], [], []
-    tracks, positions, downs = {}, {}, []
+    d, cols, robot_idx = Drawing(), [], []
+    ref = recs[0].robot_id
     for k, rec in enumerate(recs):
         rid = rec.robot_id
         if rid not in placed:
             continue
         T = placed[rid]
         p, c = clouds[rid].voxelised(voxel)
-        pts.append(apply(T, p))
+        d.points.append(apply(T, p))
         cols.append(c)
         robot_idx.append(np.full(len(p), k, np.uint16))
-        names.append(rid)
-        colours.append(ROBOT_COLOURS[k % len(ROBOT_COLOURS)])
+        d.names.append(rid)
+        d.colours.append(ROBOT_COLOURS[k % len(ROBOT_COLOURS)])
         kfs = [rec.frames[i] for i in kf_index[rid]]
         poses = [T @ f.T_map_cam for f in kfs]
-        tracks[rid] = np.array([P[:3, 3] for P in poses])
-        downs.extend(P[:3, 1] for P in poses)  # each camera's image-down axis
-        positions[rid] = {round(f.stamp, 6): P[:3, 3] for f, P in zip(kfs, poses, strict=True)}
-        _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, T, report["reference"])
-    if pts:
+        d.tracks[rid] = np.array([P[:3, 3] for P in poses])
+        d.downs.extend(P[:3, 1] for P in poses)
+        d.positions[rid] = {round(f.stamp, 6): P[:3, 3] for f, P in zip(kfs, poses, strict=True)}
+        _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, T, ref)
+    if d.points:
         write_ply(
             out / "merged.ply",
-            np.concatenate(pts),
+            np.concatenate(d.points),
             np.concatenate(cols),
             robot=np.concatenate(robot_idx),
         )
+    write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
+    return d
+
+
+def write_pictures(out: Path, ids: list[str], d: Drawing, report: dict) -> None:
+    """overview.png (top-down, verified overlaps drawn) and overlap_matrix.png."""
+    if d.points:
         links = []
         for o in report["overlaps"]:
             if o.get("source", "cascade") != "cascade":
                 continue
-            pa = positions.get(o["robot_a"], {}).get(round(o["stamp_a"], 6))
-            pb = positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
+            pa = d.positions.get(o["robot_a"], {}).get(round(o["stamp_a"], 6))
+            pb = d.positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
             if pa is not None and pb is not None:
                 links.append((pa, pb))
-        pictures.overview(out / "overview.png", pts, tracks, names, colours, links, report, downs)
-    pictures.overlap_matrix(out / "overlap_matrix.png", [r.robot_id for r in recs], report)
-    write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
+        pictures.overview(
+            out / "overview.png", d.points, d.tracks, d.names, d.colours, links, report, d.downs
+        )
+    pictures.overlap_matrix(out / "overlap_matrix.png", ids, report)
 
 
 def _write_trajectory(path: Path, rec: Recording, T_ref_map: np.ndarray, ref: str) -> None:
