@@ -26,7 +26,7 @@ from shared.correspondences import (
     RGBDView,
     pair_features,
     pooled_correspondences,
-    raw_correspondences,
+    verified_and_raw,
 )
 from shared.errors import BadInput
 from shared.estimators import MLPEstimator, fit_affine
@@ -237,11 +237,7 @@ def align_views(
     t0 = time.perf_counter()
     if not pairs:
         raise BadInput("Give at least one RGB-D pair")
-    f = pair_features(pairs)
-    C = pooled_correspondences(pairs, f)
-    R = Correspondences.concat(
-        [raw_correspondences(a, b, f[id(a)], f[id(b)], i) for i, (a, b) in enumerate(pairs)]
-    )
+    C, R = verified_and_raw(pairs, pair_features(pairs))
     res = _align(C, R, pairs, p)
     res.correspondences = len(R)
     res.seconds = time.perf_counter() - t0

@@ -17,7 +17,7 @@ from shared.camera import Intrinsics, backproject_pixels
 from shared.errors import BadInput
 from shared.features import FeatureParams, LocalFeatures, detect_and_describe
 from shared.geometry import apply, check_transform
-from shared.matching import MatchParams, match_descriptors, verify_pair
+from shared.matching import MatchParams, match_descriptors_at, verify_pair
 
 ALIGN_FEATURES = FeatureParams(max_features=1000, min_mser_features=400)
 ALIGN_MATCH = MatchParams(ratio=0.85, min_inliers=8, min_inlier_ratio=0.0)
@@ -84,15 +84,24 @@ def pair_correspondences(
     fa: LocalFeatures | None = None,
     fb: LocalFeatures | None = None,
     match: MatchParams = ALIGN_MATCH,
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Correspondences:
-    """3D-3D correspondences of one pair (view a of robot A, view b of robot B)."""
+    """3D-3D correspondences of one pair (view a of robot A, view b of robot B), verified
+    by the epipolar RANSAC; `matches` at `match.ratio` when already computed."""
     fa = fa or view_features(a)
     fb = fb or view_features(b)
-    v = verify_pair(fa.keypoints, fa.descriptors, fb.keypoints, fb.descriptors, match)
+    v = verify_pair(
+        fa.keypoints, fa.descriptors, fb.keypoints, fb.descriptors, match, matches=matches
+    )
     if v.inliers == 0:
         return Correspondences.concat([])
-    pa, va = backproject_pixels(fa.keypoints[v.idx_a], a.depth, a.intrinsics)
-    pb, vb = backproject_pixels(fb.keypoints[v.idx_b], b.depth, b.intrinsics)
+    return _lift(a, b, fa, fb, v.idx_a, v.idx_b, index)
+
+
+def _lift(a, b, fa, fb, ia, ib, index: int) -> Correspondences:
+    """Matched features with depth on both sides, each into its robot's map frame."""
+    pa, va = backproject_pixels(fa.keypoints[ia], a.depth, a.intrinsics)
+    pb, vb = backproject_pixels(fb.keypoints[ib], b.depth, b.intrinsics)
     ok = va & vb
     return Correspondences(
         apply(b.T_map_cam, pb[ok]), apply(a.T_map_cam, pa[ok]), np.full(int(ok.sum()), index)
@@ -119,23 +128,21 @@ def pooled_correspondences(
     )
 
 
-def raw_correspondences(
-    a: RGBDView,
-    b: RGBDView,
-    fa: LocalFeatures,
-    fb: LocalFeatures,
-    index: int = 0,
-    ratio: float = 0.9,
-) -> Correspondences:
-    """Mutual ratio-test matches of one pair lifted to 3D, without an epipolar filter.
+def verified_and_raw(
+    pairs: list[tuple[RGBDView, RGBDView]], feats: dict[int, LocalFeatures], ratio: float = 0.9
+) -> tuple[Correspondences, Correspondences]:
+    """`pooled_correspondences` and every pair's raw matches (mutual ratio-test matches
+    lifted to 3D, no epipolar filter), from one descriptor matching per pair.
 
     Across wide baselines (robots 60-90 degrees apart) the epipolar RANSAC keeps too few
-    right matches; a rigid RANSAC in 3D on these raw matches, judged by geometry, does
+    right matches; a rigid RANSAC in 3D on the raw matches, judged by geometry, does
     better (see `shared.align`)."""
-    ia, ib = match_descriptors(fa.descriptors, fb.descriptors, ratio)
-    pa, va = backproject_pixels(fa.keypoints[ia], a.depth, a.intrinsics)
-    pb, vb = backproject_pixels(fb.keypoints[ib], b.depth, b.intrinsics)
-    ok = va & vb
-    return Correspondences(
-        apply(b.T_map_cam, pb[ok]), apply(a.T_map_cam, pa[ok]), np.full(int(ok.sum()), index)
-    )
+    verified, raw = [], []
+    for i, (a, b) in enumerate(pairs):
+        fa, fb = feats[id(a)], feats[id(b)]
+        m_verify, m_raw = match_descriptors_at(
+            fa.descriptors, fb.descriptors, (ALIGN_MATCH.ratio, ratio)
+        )
+        verified.append(pair_correspondences(a, b, i, fa, fb, matches=m_verify))
+        raw.append(_lift(a, b, fa, fb, *m_raw, i))
+    return Correspondences.concat(verified), Correspondences.concat(raw)

@@ -56,8 +56,15 @@ def match_descriptors(
 
     Returns index arrays (M,) into a and into b.
     """
+    return match_descriptors_at(da, db, (ratio,))[0]
+
+
+def match_descriptors_at(
+    da: np.ndarray, db: np.ndarray, ratios: tuple[float, ...]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`match_descriptors` at several ratio thresholds from one distance computation."""
     if len(da) < 2 or len(db) < 2:
-        return np.zeros(0, int), np.zeros(0, int)
+        return [(np.zeros(0, int), np.zeros(0, int)) for _ in ratios]
     fa, fb = da.astype(np.float32), db.astype(np.float32)
     # Squared distances via one matrix product: faster than a BFMatcher at these sizes.
     d2 = (fa * fa).sum(1)[:, None] - 2.0 * fa @ fb.T + (fb * fb).sum(1)[None, :]
@@ -67,10 +74,12 @@ def match_descriptors(
     order = np.argsort(first, axis=1)
     best = np.take_along_axis(nn, order, 1)[:, 0]
     d_best, d_second = np.sort(first, axis=1).T
-    ok = d_best < (ratio**2) * d_second
-    back = np.argmin(d2, axis=0)
-    ia = np.flatnonzero(ok & (back[best] == np.arange(len(fa))))
-    return ia, best[ia]
+    mutual = np.argmin(d2, axis=0)[best] == np.arange(len(fa))
+    out = []
+    for ratio in ratios:
+        ia = np.flatnonzero((d_best < (ratio**2) * d_second) & mutual)
+        out.append((ia, best[ia]))
+    return out
 
 
 def verify_pair(
@@ -81,16 +90,18 @@ def verify_pair(
     params: MatchParams = DEFAULT_MATCH_PARAMS,
     points_a: tuple[np.ndarray, np.ndarray] | None = None,
     points_b: tuple[np.ndarray, np.ndarray] | None = None,
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Verification:
     """Match two frames' features and verify them with a fundamental-matrix RANSAC.
 
     kp_*: ndarray of shape (N, 2) pixel positions; desc_*: ndarray of shape (N, 128).
     points_*: optional (points (N, 3), valid (N,)) of each feature in its robot's map;
     with both, a pair with `min_inliers_3d_check` epipolar inliers is also verified when
-    `min_rigid_inliers` of them agree with one rigid motion.
+    `min_rigid_inliers` of them agree with one rigid motion. `matches`: the descriptor
+    matches at `params.ratio`, when already computed.
     """
     t0 = time.perf_counter()
-    ia, ib = match_descriptors(desc_a, desc_b, params.ratio)
+    ia, ib = matches if matches is not None else match_descriptors(desc_a, desc_b, params.ratio)
     t1 = time.perf_counter()
     n = len(ia)
     if n < params.min_matches:
