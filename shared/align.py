@@ -358,7 +358,7 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, clouds, p: Ali
     plain point-to-plane fit is the better one (0.08 against 0.2-2 cm), and where colour is
     not registered to depth, colour pulls the fit off (HoloLens lounge: 1.6 cm coloured, 1.0
     cm geometric). The depth decides: the refinement whose surfaces sit closest
-    (`surface_rmse`, depth only) is kept. (The raw matches decided before; their truncated
+    (`surface_rmse` within one fine voxel, depth only) is kept. (The raw matches decided before; their truncated
     costs differed by 0.1% between the two and chose colour on the HoloLens.) See
     docs/ALIGNER.md."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
@@ -403,7 +403,7 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, clouds, p: Ali
             refined.append((T, best.source + "+colour"))
         except RuntimeError:  # too few points with colour gradients
             pass
-    for T, source in sorted(refined, key=lambda c: surface_rmse(cb1, ca1, c[0], 1.5 * v1)):
+    for T, source in sorted(refined, key=lambda c: surface_rmse(cb1, ca1, c[0], v1)):
         dt, dr = transform_error(T, best.T_a_b)
         if dt <= p.rival_m and dr <= p.rival_deg:  # a refinement, not a jump elsewhere
             polished = Hypothesis(T, best.support, source)
