@@ -358,9 +358,9 @@ def _geometric_choice(hyps, R: Correspondences, views_a, views_b, clouds, p: Ali
     plain point-to-plane fit is the better one (0.08 against 0.2-2 cm), and where colour is
     not registered to depth, colour pulls the fit off (HoloLens lounge: 1.6 cm coloured, 1.0
     cm geometric). The depth decides: the refinement whose surfaces sit closest
-    (`surface_rmse` within one fine voxel, depth only) is kept. (The raw matches decided before; their truncated
-    costs differed by 0.1% between the two and chose colour on the HoloLens.) See
-    docs/ALIGNER.md."""
+    (`surface_rmse` within one fine voxel, depth only) is kept. (The raw matches decided
+    before; their truncated costs differed by 0.1% between the two and chose colour on the
+    HoloLens.) See docs/ALIGNER.md."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
     probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
