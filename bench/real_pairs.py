@@ -117,6 +117,28 @@ def cases(data: Path) -> dict[str, list[tuple[str, Path, slice, np.ndarray]]]:
     return out
 
 
+def sweep_cases(data: Path) -> dict:
+    """Windows of one robot's frames against windows of the other's (SUN3D: 25 frames every
+    12, HoloLens: 60 every 40): many overlaps, from none to most (`--sweep`)."""
+    out = {}
+    for name, folder, a, b, length, step in (
+        ("sun3d", data / "sun3d_studyroom", "robot_a", "robot_b", 25, 12),
+        ("hololens", data / "hololens_lounge", "hl_a", "hl_b", 60, 40),
+    ):
+        if not folder.exists():
+            continue
+        T = np.loadtxt(folder / "T_a_b.txt")
+        n_a, n_b = len(read_recording(folder / a)), len(read_recording(folder / b))
+        win = min(length, n_a, n_b)
+        for i in range(0, n_a - win + 1, step):
+            for j in range(0, n_b - win + 1, step):
+                out[f"{name}_a{i}_b{j}"] = [
+                    ("A", folder / a, slice(i, i + win), np.eye(4)),
+                    ("B", folder / b, slice(j, j + win), T),
+                ]
+    return out
+
+
 def every_nth_views(robot_dir: Path, n: int = 10):
     rec = read_recording(robot_dir)
     return [load_view(rec, i) for i in range(0, len(rec), n)]
@@ -190,9 +212,16 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--only", nargs="*", help="case names to run")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random map frames")
+    ap.add_argument(
+        "--sweep",
+        action="store_true",
+        help="instead of the cases, 60-frame windows of A against windows of B (no recipe)",
+    )
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
-    all_cases = cases(args.data)
+    all_cases = sweep_cases(args.data) if args.sweep else cases(args.data)
+    if args.sweep:
+        args.seeds = 0
     if not all_cases:
         sys.exit(f"real_pairs.py: no recordings under {args.data}")
     print(
