@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -40,20 +41,77 @@ class Intrinsics:
 
     @classmethod
     def from_dict(cls, d: dict) -> Intrinsics:
-        known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
-        try:
-            return cls(
-                **{k: (int(v) if k in ("width", "height") else float(v)) for k, v in known.items()}
-            )
-        except (TypeError, ValueError) as exc:
-            raise BadInput(f"Bad intrinsics {d!r}: {exc}") from exc
+        """From {"fx", "fy", "cx", "cy", "depth_scale"[, "width", "height"]}: numbers only,
+        nothing missing, nothing unknown (no field silently takes a default)."""
+        if not isinstance(d, dict):
+            raise BadInput(f"Intrinsics must be an object, got {type(d).__name__}: {d!r:.80}")
+        unknown = sorted(set(d) - set(cls.__dataclass_fields__))
+        missing = [k for k in _REQUIRED if k not in d]
+        if unknown or missing:
+            raise BadInput(f"Intrinsics: missing {missing}, unknown {unknown}")
+        return cls(**{k: _number(k, v) for k, v in d.items()})
+
+    @classmethod
+    def from_camera_json(cls, d: dict) -> Intrinsics:
+        """A robot folder's camera.json: the contract's keys (fx, fy, cx, cy, depth_scale,
+        width, height) or Open3D's PinholeCameraIntrinsic JSON (width, height,
+        intrinsic_matrix column-major 3x3) plus depth_scale. Anything missing or unknown
+        is an error."""
+        if not isinstance(d, dict):
+            raise BadInput(f"expected a JSON object, got {type(d).__name__}")
+        if "intrinsic_matrix" in d:
+            keys = {"width", "height", "intrinsic_matrix", "depth_scale"}
+            _exact_keys(d, keys, "Open3D format")
+            m = d["intrinsic_matrix"]
+            if not isinstance(m, list) or len(m) != 9:
+                raise BadInput(f"intrinsic_matrix must be 9 numbers (column-major), got {m!r}")
+            m = [_number("intrinsic_matrix", v) for v in m]
+            if any(abs(m[i]) > 1e-9 for i in (1, 2, 3, 5)) or abs(m[8] - 1) > 1e-9:
+                raise BadInput(
+                    f"intrinsic_matrix must be [fx, 0, 0, 0, fy, 0, cx, cy, 1] (column-major, "
+                    f"no skew), got {m}"
+                )
+            d = {
+                "fx": m[0],
+                "fy": m[4],
+                "cx": m[6],
+                "cy": m[7],
+                "depth_scale": d["depth_scale"],
+                "width": d["width"],
+                "height": d["height"],
+            }
+        else:
+            _exact_keys(d, set(cls.__dataclass_fields__), "fleetmap format")
+        return cls(**{k: _number(k, v) for k, v in d.items()})
 
     @classmethod
     def from_json_file(cls, path: Path) -> Intrinsics:
         try:
-            return cls.from_dict(json.loads(Path(path).read_text()))
-        except (OSError, json.JSONDecodeError, BadInput) as exc:
+            return cls.from_camera_json(json.loads(Path(path).read_text()))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, BadInput) as exc:
             raise BadRobotData(f"Cannot read camera file {path}: {exc}") from exc
+
+
+_REQUIRED = ("fx", "fy", "cx", "cy", "depth_scale")
+
+
+def _exact_keys(d: dict, keys: set, form: str) -> None:
+    missing, unknown = sorted(keys - set(d)), sorted(set(d) - keys)
+    if missing or unknown:
+        raise BadInput(f"{form} needs exactly {sorted(keys)}: missing {missing}, unknown {unknown}")
+
+
+def _number(key: str, v) -> float | int:
+    """A JSON number for `key` (not a bool, not a string); width and height integral."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise BadInput(f"{key} must be a number, got {v!r:.40}")
+    if not math.isfinite(v):
+        raise BadInput(f"{key} must be finite, got {v}")
+    if key in ("width", "height"):
+        if float(v) != int(v):
+            raise BadInput(f"{key} must be a whole number, got {v}")
+        return int(v)
+    return float(v)
 
 
 #: TUM RGB-D freiburg1 defaults, used where a robot folder has no camera.json.

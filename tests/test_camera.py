@@ -1,3 +1,6 @@
+import json
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -59,3 +62,58 @@ def test_bad_intrinsics(tmp_path):
     (tmp_path / "camera.json").write_text("{not json")
     with pytest.raises(BadRobotData, match="camera.json"):
         Intrinsics.from_json_file(tmp_path / "camera.json")
+
+
+def _write_camera(tmp_path, content) -> Path:
+    path = tmp_path / "camera.json"
+    path.write_text(content if isinstance(content, str) else json.dumps(content))
+    return path
+
+
+def test_camera_json_in_open3d_format(tmp_path):
+    """Open3D's own PinholeCameraIntrinsic file plus depth_scale (a RealSense user's)."""
+    import open3d as o3d
+
+    path = tmp_path / "camera.json"
+    cam = o3d.camera.PinholeCameraIntrinsic(848, 480, 421.5, 421.0, 424.1, 239.2)
+    o3d.io.write_pinhole_camera_intrinsic(str(path), cam)
+    d = json.loads(path.read_text())
+    d["depth_scale"] = 1000.0
+    path.write_text(json.dumps(d))
+    intr = Intrinsics.from_json_file(path)
+    assert (intr.fx, intr.fy, intr.cx, intr.cy) == (421.5, 421.0, 424.1, 239.2)
+    assert (intr.width, intr.height, intr.depth_scale) == (848, 480, 1000.0)
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (
+            {
+                "width": 848,
+                "height": 480,
+                "intrinsic_matrix": [421.5, 0, 0, 0, 421, 0, 424, 239, 1],
+            },
+            r"missing \['depth_scale'\]",
+        ),
+        ({"fx": 600.0}, r"missing \['cx', 'cy', 'depth_scale', 'fy', 'height', 'width'\]"),
+        ({**TUM_FR1.to_dict(), "k1": 0.1}, r"unknown \['k1'\]"),
+        ({**TUM_FR1.to_dict(), "fx": True}, "fx must be a number"),
+        ({**TUM_FR1.to_dict(), "width": 640.5}, "width must be a whole number"),
+        (
+            {"width": 640, "height": 480, "intrinsic_matrix": [1, 2], "depth_scale": 1000},
+            "9 numbers",
+        ),
+        ([1, 2], "expected a JSON object"),
+        ("{not json", "Cannot read camera file"),
+    ],
+)
+def test_camera_json_mistakes_are_errors_not_defaults(tmp_path, content, message):
+    with pytest.raises(BadRobotData, match=message):
+        Intrinsics.from_json_file(_write_camera(tmp_path, content))
+
+
+@pytest.mark.parametrize("d", [[1, 2], {}, {"fx": 500.0}, {**TUM_FR1.to_dict(), "extra": 1}])
+def test_intrinsics_payloads_must_be_complete(d):
+    with pytest.raises(BadInput, match="Intrinsics"):
+        Intrinsics.from_dict(d)
