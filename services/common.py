@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hmac
 import logging
+import re
 import time
 import uuid
 from typing import Annotated
@@ -22,6 +25,8 @@ from shared.errors import (
     Forbidden,
     NotEnoughCorrespondences,
     PayloadTooLarge,
+    RequestTimeout,
+    StorageCorrupt,
     Unauthorized,
     Unavailable,
     UnknownKeyframe,
@@ -30,12 +35,16 @@ from shared.errors import (
 )
 
 log = logging.getLogger("fleetmap.http")
+_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,64}")
+#: Longest wait for the next piece of a request body (a client that stalls is cut off).
+BODY_CHUNK_TIMEOUT_S = 30.0
 
 STATUS = [
     (Unauthorized, 401),
     (Forbidden, 403),
     (UnsupportedEncoding, 415),
     (PayloadTooLarge, 413),
+    (RequestTimeout, 408),
     (BadFrame, 400),
     (UnknownRobot, 404),
     (UnknownKeyframe, 404),
@@ -45,6 +54,7 @@ STATUS = [
     (BadRobotData, 422),
     (BadVocabulary, 500),
     (Unavailable, 503),
+    (StorageCorrupt, 500),
 ]
 
 
@@ -70,13 +80,20 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(FleetmapError)
     async def _domain_error(request: Request, exc: FleetmapError) -> JSONResponse:
+        headers = {}
+        if getattr(exc, "retry_after", None) is not None:
+            headers["retry-after"] = str(max(1, round(exc.retry_after)))
         return JSONResponse(
-            status_code=status_of(exc), content={"detail": str(exc), "error": type(exc).__name__}
+            status_code=status_of(exc),
+            content={"detail": str(exc), "error": type(exc).__name__},
+            headers=headers,
         )
 
     @app.middleware("http")
     async def _request_id(request: Request, call_next):
-        rid = request.headers.get("x-request-id", "")[:64] or uuid.uuid4().hex[:16]
+        rid = request.headers.get("x-request-id", "")
+        if not _REQUEST_ID.fullmatch(rid):  # never echo or log a caller's control characters
+            rid = uuid.uuid4().hex[:16]
         t = time.perf_counter()
         response = await call_next(request)
         response.headers["x-request-id"] = rid
@@ -109,12 +126,58 @@ async def read_body(request: Request, limit: int) -> bytes:
         if length > limit:
             raise PayloadTooLarge(f"Body of {length} bytes exceeds the {limit}-byte limit")
     chunks, size = [], 0
-    async for chunk in request.stream():
+    stream = request.stream().__aiter__()
+    while True:
+        try:
+            chunk = await asyncio.wait_for(anext(stream), BODY_CHUNK_TIMEOUT_S)
+        except StopAsyncIteration:
+            break
+        except TimeoutError as exc:
+            raise RequestTimeout(
+                f"No body bytes for {BODY_CHUNK_TIMEOUT_S:.0f} s after {size} bytes"
+            ) from exc
         size += len(chunk)
         if size > limit:
             raise PayloadTooLarge(f"Body exceeds the {limit}-byte limit")
         chunks.append(chunk)
-    return b"".join(chunks)
+    body = b"".join(chunks)
+    request._body = body  # Starlette's form parser then reads these bytes, not the socket
+    return body
+
+
+class PixelBudget:
+    """Decoded image pixels in flight in this process. A request holds its share while its
+    images are decoded and aligned; others wait for room, up to `wait_s`, then get 503 with
+    Retry-After. One request over the whole budget is refused with 413."""
+
+    def __init__(self, capacity: int, wait_s: float = 30.0):
+        self.capacity, self.wait_s, self.used = capacity, wait_s, 0
+        self._cond = asyncio.Condition()
+
+    @contextlib.asynccontextmanager
+    async def hold(self, pixels: int):
+        if pixels > self.capacity:
+            raise PayloadTooLarge(
+                f"{pixels} pixels in one request exceed the {self.capacity}-pixel budget: "
+                "send fewer or smaller views"
+            )
+        async with self._cond:
+            try:
+                await asyncio.wait_for(
+                    self._cond.wait_for(lambda: self.used + pixels <= self.capacity), self.wait_s
+                )
+            except TimeoutError as exc:
+                raise Unavailable(
+                    "The aligner is busy with other requests' images; try again",
+                    retry_after=10,
+                ) from exc
+            self.used += pixels
+        try:
+            yield
+        finally:
+            async with self._cond:
+                self.used -= pixels
+                self._cond.notify_all()
 
 
 def auth_summary(settings) -> str:

@@ -53,6 +53,14 @@ class Conflict(FleetmapError):
 class Unavailable(FleetmapError):
     """A service or resource that cannot be reached or is not ready."""
 
+    def __init__(self, message: str = "", retry_after: float | None = None):
+        super().__init__(message)
+        self.retry_after = retry_after
+
+
+class RequestTimeout(BadInput):
+    """A client stopped sending its request midway."""
+
 
 class Unauthorized(FleetmapError):
     """No valid credentials."""
@@ -64,3 +72,7 @@ class Forbidden(FleetmapError):
 
 class UnsupportedEncoding(BadInput):
     """A body in a content encoding the service does not accept (e.g. compressed)."""
+
+
+class StorageCorrupt(FleetmapError):
+    """Stored data failed its integrity check: the server's fault, never the client's."""

@@ -34,6 +34,7 @@ VERSION = 1
 FLAG_POSE = 1
 FLAG_POINTS = 2
 FLAG_INTRINSICS = 4
+KNOWN_FLAGS = FLAG_POSE | FLAG_POINTS | FLAG_INTRINSICS
 
 MAX_FEATURES = 4096
 MAX_GIST_DIM = 4096
@@ -113,7 +114,11 @@ def _arr(value, dtype, shape: tuple, name: str) -> np.ndarray:
 def validate(f: Frame) -> None:
     """Check every field's type, shape, dtype, range and finiteness; BadInput otherwise."""
     check_robot_id(f.robot_id)
-    if not isinstance(f.stamp, int | float) or not np.isfinite(f.stamp):
+    if (
+        isinstance(f.stamp, bool)
+        or not isinstance(f.stamp, int | float)
+        or not np.isfinite(f.stamp)
+    ):
         raise BadInput(f"stamp must be a finite number, got {f.stamp!r}")
     f.stamp = float(f.stamp)
     f.gist = _arr(f.gist, np.float16, (-1,), "gist")
@@ -213,6 +218,8 @@ def _header(buf: bytes) -> tuple[int, dict, int]:
         raise BadFrame(f"Not a fleetmap frame (magic {magic!r}, expected {MAGIC!r})")
     if version != VERSION:
         raise BadFrame(f"Frame format version {version}, this build reads {VERSION}")
+    if flags & ~KNOWN_FLAGS:
+        raise BadFrame(f"Unknown frame flag bits {flags & ~KNOWN_FLAGS:#x}")
     if hlen > MAX_HEADER_BYTES or _PREFIX.size + hlen > len(buf) - 4:
         raise BadFrame(f"Header of {hlen} bytes is truncated or over the limit")
     (crc,) = struct.unpack_from("<I", buf, len(buf) - 4)
@@ -224,6 +231,8 @@ def _header(buf: bytes) -> tuple[int, dict, int]:
         )
         if not isinstance(header, dict):
             raise ValueError("header is not an object")
+    except RecursionError as exc:
+        raise BadFrame("Bad frame header: JSON nested too deep") from exc
     except (UnicodeDecodeError, ValueError) as exc:
         raise BadFrame(f"Bad frame header: {exc}") from exc
     return flags, header, _PREFIX.size + hlen
@@ -278,5 +287,5 @@ def decode(buf: bytes) -> Frame:
             vocab_id=h.get("vocab_id", ""),
             intrinsics=intr,
         )
-    except (BadInput, TypeError, ValueError, KeyError) as exc:
+    except (BadInput, TypeError, ValueError, KeyError, OverflowError) as exc:
         raise BadFrame(f"Invalid frame: {exc}") from exc

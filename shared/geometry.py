@@ -7,14 +7,33 @@ from scipy.spatial.transform import Rotation
 
 from shared.errors import BadInput
 
+#: Largest translation accepted in a pose (metres) and orthonormality tolerance.
+MAX_TRANSLATION_M = 1e6
+RIGID_TOL = 1e-3
+
 
 def check_transform(T: np.ndarray, name: str = "transform") -> np.ndarray:
-    """Return `T` as float64 of shape (4, 4) or raise BadInput naming the problem."""
-    T = np.asarray(T, dtype=np.float64)
+    """Return `T` as float64 of shape (4, 4) if it is a rigid transform (finite, rotation
+    orthonormal within 1e-3 with det +1, bottom row 0 0 0 1, translation within 1e6 m);
+    raise BadInput naming the problem otherwise."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise BadInput(f"{name} must be a 4x4 matrix of numbers: {exc}") from exc
     if T.shape != (4, 4):
         raise BadInput(f"Expected {name} of shape (4, 4), got {T.shape}")
     if not np.all(np.isfinite(T)):
         raise BadInput(f"{name} has non-finite values")
+    if np.max(np.abs(T[3] - [0, 0, 0, 1])) > 1e-9:
+        raise BadInput(f"{name} must have the bottom row 0 0 0 1, got {T[3].tolist()}")
+    R = T[:3, :3]
+    if np.max(np.abs(R.T @ R - np.eye(3))) > RIGID_TOL or np.linalg.det(R) < 0:
+        raise BadInput(
+            f"{name} must be rigid: its rotation block is not orthonormal with det +1 "
+            f"(det {np.linalg.det(R):.3g})"
+        )
+    if np.max(np.abs(T[:3, 3])) > MAX_TRANSLATION_M:
+        raise BadInput(f"{name} translation exceeds {MAX_TRANSLATION_M:g} m")
     return T
 
 

@@ -18,12 +18,20 @@ import queue
 import sqlite3
 import threading
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from shared.errors import BadInput, Conflict, Unavailable, UnknownKeyframe, UnknownRobot
+from shared.errors import (
+    BadInput,
+    Conflict,
+    StorageCorrupt,
+    Unavailable,
+    UnknownKeyframe,
+    UnknownRobot,
+)
 from shared.frame import Frame, check_robot_id, decode
 from shared.retrieval import (
     DEFAULT_CASCADE,
@@ -137,6 +145,7 @@ class PlaceDB:
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._retraining = threading.Lock()
         self._closed = False
+        self.storage_errors = 0  # stored frames that failed their checksum when read
         self._load()
         self._worker = None
         if background:
@@ -391,7 +400,17 @@ class PlaceDB:
         )
         if row is None:
             raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
-        return bytes(row[0])
+        data = bytes(row[0])
+        if len(data) < 4 or zlib.crc32(memoryview(data)[:-4]) != int.from_bytes(
+            data[-4:], "little"
+        ):
+            self.storage_errors += 1
+            log.error("keyframe %d: stored frame fails its CRC-32 (storage corrupted)", kf_id)
+            raise StorageCorrupt(
+                f"Keyframe {kf_id}: the stored frame fails its checksum (storage corrupted); "
+                "the operator should restore it or delete the robot"
+            )
+        return data
 
     def load_frame(self, kf_id: int) -> Frame:
         """The full stored frame of a keyframe (local features included)."""
@@ -551,6 +570,7 @@ class PlaceDB:
             "vocab_id": self.vocabulary.vocab_id,
             "db_path": str(self.path),
             "db_bytes": self.path.stat().st_size if self.path.exists() else 0,
+            "storage_errors": self.storage_errors,
         }
 
     # --- administration --------------------------------------------------------------

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import faiss
 import numpy as np
 
-from shared.errors import BadInput
+from shared.errors import BadInput, StorageCorrupt
 from shared.frame import Frame
 from shared.matching import DEFAULT_MATCH_PARAMS, MatchParams, Verification, verify_pair
 
@@ -356,7 +356,10 @@ def local_stage(
     matched, verified = 0, []
 
     for c in chosen:
-        other = load(c.kf_id)
+        try:
+            other = load(c.kf_id)
+        except StorageCorrupt:  # logged and counted by the store; the other candidates stand
+            continue
         c.verification = verify_pair(
             query.keypoints,
             query.descriptors,
@@ -369,6 +372,7 @@ def local_stage(
         matched += c.verification.matches >= p.match.min_matches
         if c.verification.verified:
             verified.append(c)
+    chosen = [c for c in chosen if c.verification is not None]
     verified.sort(key=lambda c: -c.verification.inliers)
     match_ms = sum(c.verification.match_ms for c in chosen)
     ransac_ms = sum(c.verification.ransac_ms for c in chosen)

@@ -109,6 +109,14 @@ def _mk(**kw):
         ({"robot_id": "../etc"}, "Robot id"),
         ({"stamp": float("nan")}, "stamp"),
         ({"T_map_cam": np.eye(3)}, r"shape \(4, 4\)"),
+        ({"T_map_cam": np.zeros((4, 4))}, "bottom row"),
+        ({"T_map_cam": np.diag([2.0, 2.0, 2.0, 1.0])}, "must be rigid"),
+        ({"T_map_cam": np.diag([1.0, 1.0, -1.0, 1.0])}, "must be rigid"),
+        (
+            {"T_map_cam": np.array([[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])},
+            "translation exceeds",
+        ),
+        ({"stamp": True}, "stamp"),
         ({"bow_ids": np.array([2, 1], np.uint32)}, "strictly increasing"),
         ({"keypoints": np.full((5, 2), 5000, np.float32)}, "outside"),
         (
@@ -148,3 +156,27 @@ def test_mutated_frames_raise_only_clean_errors_or_decode(pos, byte):
         decode(bytes(buf))
     except BadFrame:
         pass
+
+
+def _reframed(buf: bytes, header: bytes | None = None, flags: int | None = None) -> bytes:
+    """`buf` with its header and/or flags replaced and a valid CRC: what a client could send."""
+    magic, version, old_flags, hlen = struct.unpack_from("<4sHHI", buf)
+    header = buf[12 : 12 + hlen] if header is None else header
+    prefix = struct.pack(
+        "<4sHHI", magic, version, old_flags if flags is None else flags, len(header)
+    )
+    body = prefix + header + buf[12 + hlen : -4]
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+def test_hostile_headers_are_clean_errors():
+    """Issue 15: a header nested 5,000 deep was a 500 (RecursionError); unknown flag bits
+    were accepted."""
+    buf = encode(_mk())
+    with pytest.raises(BadFrame, match="nested too deep"):
+        decode(_reframed(buf, header=b"[" * 5000 + b"]" * 5000))
+    with pytest.raises(BadFrame, match="Unknown frame flag bits 0x80"):
+        decode(_reframed(buf, flags=0x80))
+    digits = b'{"robot_id": "r1", "stamp": ' + b"9" * 5000 + b"}"
+    with pytest.raises(BadFrame, match="Bad frame header|Invalid frame"):
+        decode(_reframed(buf, header=digits))

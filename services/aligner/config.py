@@ -18,7 +18,10 @@ class Settings(BaseSettings):
     # access control: none configured = open (logged at start-up)
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
-    max_body_bytes: int = 256 * 1024 * 1024
+    max_body_bytes: int = 128 * 1024 * 1024  # enforced while streaming, chunked or not
+    # decoded colour + depth pixels of all requests being aligned at once (about 8 bytes
+    # each while aligned): bounds memory whatever the concurrency; more waits, then 503
+    max_pixels_in_flight: int = 64 * 1024 * 1024
     max_views: int = 32  # per robot in one request
     max_pairs: int = 512
     max_image_pixels: int = 4096 * 4096

@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import io
 import json
 import uuid
+import warnings
 
 import cv2
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
+from PIL import Image
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from services.aligner import schemas as s
-from services.common import any_token
+from services.common import any_token, read_body
 from shared.align import align_request
 from shared.camera import Intrinsics
 from shared.correspondences import RGBDView
@@ -27,25 +30,34 @@ def healthz(request: Request) -> s.Health:
     return s.Health(status="ok", clouds_cached=len(request.app.state.clouds))
 
 
-async def _decode(form, name: str, depth: bool, max_pixels: int) -> np.ndarray:
-    part = form.get(name)
-    if part is None or isinstance(part, str):
-        raise BadInput(f"Missing file field {name!r}")
-    data = await part.read()
-    buf = np.frombuffer(data, np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED if depth else cv2.IMREAD_COLOR)
+def image_size(data: bytes, name: str) -> tuple[int, int]:
+    """(width, height) from an encoded image's header alone, nothing decoded (Pillow reads
+    the header lazily): the pixel limit is checked before any memory is spent."""
+    if not data:
+        raise BadInput(f"{name}: empty file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as im:
+                return im.size
+    except Image.DecompressionBombError as exc:
+        raise PayloadTooLarge(f"{name}: {exc}") from exc
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise BadInput(f"{name}: not an image OpenCV or Pillow can read ({exc})") from exc
+
+
+def _decode(data: bytes, name: str, depth: bool) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED if depth else 1)
     if img is None:
         raise BadInput(f"{name}: image does not decode")
-    if img.shape[0] * img.shape[1] > max_pixels:
-        raise PayloadTooLarge(f"{name}: {img.shape[1]}x{img.shape[0]} exceeds the pixel limit")
     if depth and (img.dtype != np.uint16 or img.ndim != 2):
         raise BadInput(f"{name}: depth must be 16-bit single channel, got {img.dtype} {img.shape}")
     return img
 
 
-async def _view(form, name: str, vm: s.ViewMeta, max_pixels: int) -> RGBDView:
-    rgb = await _decode(form, f"{name}_rgb", False, max_pixels)
-    depth = await _decode(form, f"{name}_depth", True, max_pixels)
+def _view(files: dict[str, bytes], name: str, vm: s.ViewMeta) -> RGBDView:
+    rgb = _decode(files[f"{name}_rgb"], f"{name}_rgb", False)
+    depth = _decode(files[f"{name}_depth"], f"{name}_depth", True)
     try:
         return RGBDView(
             rgb, depth, Intrinsics(**vm.intrinsics.model_dump()), np.array(vm.T_map_cam), vm.stamp
@@ -54,18 +66,52 @@ async def _view(form, name: str, vm: s.ViewMeta, max_pixels: int) -> RGBDView:
         raise BadInput(f"view {name}: {exc}") from exc
 
 
-async def _views(form, meta: s.AlignMeta, max_pixels: int) -> list[tuple[RGBDView, RGBDView]]:
+def _views(files: dict[str, bytes], meta: s.AlignMeta) -> list[tuple[RGBDView, RGBDView]]:
+    """Decode every view (in a worker thread: decoding is heavy)."""
     if meta.views_a:  # indexed layout: each view once
-        va = [await _view(form, f"a{i}", vm, max_pixels) for i, vm in enumerate(meta.views_a)]
-        vb = [await _view(form, f"b{j}", vm, max_pixels) for j, vm in enumerate(meta.views_b)]
+        va = [_view(files, f"a{i}", vm) for i, vm in enumerate(meta.views_a)]
+        vb = [_view(files, f"b{j}", vm) for j, vm in enumerate(meta.views_b)]
         return [(va[i], vb[j]) for i, j in meta.pairs]
     return [
-        (
-            await _view(form, f"a{i}", pm.a, max_pixels),
-            await _view(form, f"b{i}", pm.b, max_pixels),
-        )
+        (_view(files, f"a{i}", pm.a), _view(files, f"b{i}", pm.b))
         for i, pm in enumerate(meta.pairs)
     ]
+
+
+def _view_names(meta: s.AlignMeta) -> list[str]:
+    if meta.views_a:
+        names = [f"a{i}" for i in range(len(meta.views_a))]
+        return names + [f"b{j}" for j in range(len(meta.views_b))]
+    return [f"{side}{i}" for i in range(len(meta.pairs)) for side in "ab"]
+
+
+def _parse_meta(raw) -> s.AlignMeta:
+    if not isinstance(raw, str):
+        raise BadInput("Missing 'meta' field (JSON)")
+    try:
+        return s.AlignMeta.model_validate(json.loads(raw))
+    except RecursionError as exc:
+        raise BadInput("Bad 'meta' field: JSON nested too deep") from exc
+    except (ValidationError, ValueError, TypeError) as exc:  # ValueError: also huge integers
+        raise BadInput(f"Bad 'meta' field: {str(exc)[:500]}") from exc
+
+
+async def _files(form, names: list[str], max_pixels: int) -> tuple[dict[str, bytes], int]:
+    """Each view's two files, checked against the pixel limit from their headers; returns
+    them with the pixels they will take decoded."""
+    files, total = {}, 0
+    for n in names:
+        for kind in ("rgb", "depth"):
+            key = f"{n}_{kind}"
+            part = form.get(key)
+            if part is None or isinstance(part, str):
+                raise BadInput(f"Missing file field {key!r}")
+            data = await part.read()
+            w, h = image_size(data, key)
+            if w * h > max_pixels:
+                raise PayloadTooLarge(f"{key}: {w}x{h} exceeds the pixel limit of {max_pixels}")
+            files[key], total = data, total + w * h
+    return files, total
 
 
 @router.post(
@@ -77,25 +123,22 @@ async def _views(form, meta: s.AlignMeta, max_pixels: int) -> list[tuple[RGBDVie
 async def align(request: Request) -> s.AlignAnswer:
     """Fit the transform from robot B's map frame into robot A's from RGB-D pairs."""
     st = request.app.state.settings
-    declared = int(request.headers.get("content-length") or 0)
-    if declared > st.max_body_bytes:
-        raise PayloadTooLarge(
-            f"Body of {declared} bytes exceeds the {st.max_body_bytes}-byte limit"
-        )
+    await read_body(request, st.max_body_bytes)  # chunked or not, cut off at the limit
     form = await request.form(max_files=4 * st.max_views, max_fields=8)
-    try:
-        meta = s.AlignMeta.model_validate(json.loads(form.get("meta") or "null"))
-    except (ValidationError, json.JSONDecodeError, TypeError) as exc:
-        raise BadInput(f"Bad 'meta' field: {exc}") from exc
+    meta = _parse_meta(form.get("meta"))
     if len(meta.pairs) > st.max_pairs:
         raise BadInput(f"At most {st.max_pairs} pairs, got {len(meta.pairs)}")
     n_views = max(len(meta.views_a), len(meta.views_b)) or len(meta.pairs)
     if n_views > st.max_views:
         raise BadInput(f"At most {st.max_views} views per robot, got {n_views}")
-    pairs = await _views(form, meta, st.max_image_pixels)
-    result, cloud = await run_in_threadpool(
-        align_request, pairs, meta.method, st.params(), meta.cloud, meta.colour
-    )
+    files, pixels = await _files(form, _view_names(meta), st.max_image_pixels)
+    await form.close()
+    async with request.app.state.pixels.hold(pixels):
+        pairs = await run_in_threadpool(_views, files, meta)
+        del files
+        result, cloud = await run_in_threadpool(
+            align_request, pairs, meta.method, st.params(), meta.cloud, meta.colour
+        )
     answer = s.AlignAnswer(**result)
     if cloud is not None:
         cid = uuid.uuid4().hex[:12]

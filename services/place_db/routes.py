@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from typing import Literal
 
 import numpy as np
@@ -10,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 
 from services.common import any_token, auth_summary, check_access, operator_only, read_body
 from services.place_db import schemas as s
-from shared.errors import BadInput
+from shared.errors import BadInput, Forbidden, Unauthorized
 from shared.frame import decode
 from shared.placedb import PlaceDB
 from shared.retrieval import Candidate
@@ -29,18 +31,24 @@ def _db(request: Request) -> PlaceDB:
     return request.app.state.db
 
 
-@router.get("/healthz", response_model=s.Health)
+@router.get("/healthz", response_model=s.Health, response_model_exclude_none=True)
 def healthz(request: Request) -> s.Health:
-    """Liveness and the state of the database and the index."""
+    """Liveness; with a token (or in an open deployment) the database and index state."""
     db = _db(request)
+    ok = db.ping()
+    try:
+        check_access(request)
+    except (Unauthorized, Forbidden):  # anonymous on a secured service: liveness only
+        return s.Health(status="ok" if ok else "degraded")
     st = db.stats()
     return s.Health(
-        status="ok" if db.ping() else "degraded",
+        status="ok" if ok and not st["storage_errors"] else "degraded",
+        storage_errors=st["storage_errors"],
         keyframes=st["keyframes"],
         robots=st["robots"],
         pending=st["pending"],
         database=st["db_path"],
-        database_ok=db.ping(),
+        database_ok=ok,
         index_clusters=st["clusters"],
         index_cluster_max=st["cluster_max"],
         access_control=auth_summary(request.app.state.settings),
@@ -79,7 +87,7 @@ def robots(request: Request) -> s.Robots:
 def keyframes(
     robot_id: str,
     request: Request,
-    offset: int = Query(0, ge=0),
+    offset: int = Query(0, ge=0, le=2**62),
     limit: int = Query(1000, ge=1, le=10000),
 ) -> s.Keyframes:
     """A robot's keyframes in time order, paged."""
@@ -128,7 +136,7 @@ async def query(
     request: Request,
     robot: str | None = None,
     exclude_robot: str | None = None,
-    max_stamp: float | None = None,
+    max_stamp: float | None = Query(None, allow_inf_nan=False),
 ) -> s.QueryAnswer:
     """The retrieval cascade's answer for one frame: winner, verified list, stage counts."""
     body = await read_body(request, request.app.state.settings.max_body_bytes)
@@ -151,7 +159,7 @@ async def query(
     response_model_exclude_none=True,
     dependencies=[Depends(operator_only)],
 )
-def overlaps(
+async def overlaps(
     request: Request,
     robot_a: str | None = None,
     robot_b: str | None = None,
@@ -159,11 +167,17 @@ def overlaps(
     source: Literal["all", "cascade", "link"] = "all",
 ) -> s.Overlaps:
     """Verified keyframe pairs between two robots, or without robots the overlap graph.
-    `wait` seconds at most for keyframes still queued for overlap detection; `source`
-    keeps only the cascade's pairs or only those co-visible under a registered link."""
+    `wait` seconds at most for keyframes still queued for overlap detection (an async wait:
+    it holds no worker thread); `source` keeps only the cascade's pairs or only those
+    co-visible under a registered link."""
     db = _db(request)
-    if wait:
-        db.wait_idle(wait)
+    end = time.monotonic() + wait
+    while db.pending() and time.monotonic() < end:
+        await asyncio.sleep(0.05)
+    return await run_in_threadpool(_overlaps, db, robot_a, robot_b, source)
+
+
+def _overlaps(db: PlaceDB, robot_a, robot_b, source) -> s.Overlaps:
     if robot_a is None and robot_b is None:
         return s.Overlaps(
             graph=[s.OverlapEdge(**e) for e in db.overlap_graph()], pending=db.pending()

@@ -10,15 +10,18 @@ from services.common import Matrix4
 
 
 class Health(BaseModel):
+    """Anonymous callers of a secured service see `status` only."""
+
     status: str
-    keyframes: int
-    robots: int
-    pending: int
-    database: str
-    database_ok: bool
-    index_clusters: int
-    index_cluster_max: int
-    access_control: str
+    keyframes: int | None = None
+    robots: int | None = None
+    pending: int | None = None
+    database: str | None = None
+    database_ok: bool | None = None
+    index_clusters: int | None = None
+    index_cluster_max: int | None = None
+    storage_errors: int | None = None
+    access_control: str | None = None
 
 
 class KeyframeCreated(BaseModel):

@@ -1,0 +1,101 @@
+"""Issue 15's attacks, each answered cleanly: every one of these was a 500, a silent
+acceptance or a leak before (the test names say which)."""
+
+from __future__ import annotations
+
+import sqlite3
+import struct
+import zlib
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from services.place_db.config import Settings
+from services.place_db.main import create_app
+from shared.frame import decode
+from tests.test_place_db_api import OCTET, _post, frames  # noqa: F401  (fixture)
+
+
+@pytest.fixture
+def client(tmp_path):
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as c:
+        yield c
+
+
+def _with_pose(data: bytes, T: np.ndarray) -> bytes:
+    f = decode(data)
+    f.T_map_cam = T  # bypasses validation: what a hostile client could encode by hand
+    header_start = 12
+    magic, version, flags, hlen = struct.unpack_from("<4sHHI", data)
+    import json
+
+    h = json.loads(data[header_start : header_start + hlen])
+    h["T_map_cam"] = T.tolist()
+    header = json.dumps(h, separators=(",", ":")).encode()
+    body = struct.pack("<4sHHI", magic, version, flags, len(header)) + header
+    body += data[header_start + hlen : -4]
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+def test_an_all_zero_pose_is_refused_at_ingest(client, frames):  # noqa: F811
+    """Was 201, then every link for the pair answered 500 (singular matrix)."""
+    r = _post(client, "robot_a", _with_pose(frames["robot_a"][0], np.zeros((4, 4))))
+    assert r.status_code == 400 and "bottom row" in r.json()["detail"]
+    scaled = _with_pose(frames["robot_a"][0], np.diag([3.0, 3.0, 3.0, 1.0]))
+    r = _post(client, "robot_a", scaled)
+    assert r.status_code == 400 and "rigid" in r.json()["detail"]
+    assert client.get("/robots").json()["robots"] == []  # nothing stored
+
+
+def test_out_of_range_query_parameters_are_4xx(client, frames):  # noqa: F811
+    """?offset >= 2^63 was a 500; ?max_stamp=nan was accepted."""
+    _post(client, "robot_a", frames["robot_a"][0])
+    r = client.get("/robots/robot_a/keyframes", params={"offset": 2**63})
+    assert r.status_code == 422
+    r = client.post(
+        "/query", content=frames["robot_a"][0], headers=OCTET, params={"max_stamp": "nan"}
+    )
+    assert r.status_code == 422
+
+
+def test_a_corrupted_stored_frame_is_a_storage_error_not_the_clients(tmp_path, frames):  # noqa: F811
+    """16 bytes corrupted in storage: GET returned the wrong bytes with 200 and a valid
+    query got a 400 blaming the client. Now: 500 naming the keyframe, counted in /healthz,
+    and queries still answered from the other keyframes."""
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as c:
+        ids = [_post(c, "robot_a", d).json()["id"] for d in frames["robot_a"]]
+    db_file = next(tmp_path.glob("*.sqlite*"))
+    con = sqlite3.connect(db_file)
+    data = bytearray(con.execute("SELECT data FROM keyframes WHERE id=?", (ids[0],)).fetchone()[0])
+    data[100:116] = bytes(16)
+    con.execute("UPDATE keyframes SET data=? WHERE id=?", (bytes(data), ids[0]))
+    con.commit()
+    con.close()
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as c:
+        r = c.get(f"/keyframes/{ids[0]}/frame")
+        assert r.status_code == 500 and f"Keyframe {ids[0]}" in r.json()["detail"]
+        assert r.json()["error"] == "StorageCorrupt"
+        h = c.get("/healthz").json()
+        assert h["storage_errors"] == 1 and h["status"] == "degraded"
+        q = c.post("/query", content=frames["robot_a"][1], headers=OCTET)
+        assert q.status_code == 200
+        assert c.get(f"/keyframes/{ids[1]}/frame").content == frames["robot_a"][1]
+
+
+def test_secured_healthz_tells_anonymous_callers_liveness_only(tmp_path):
+    """With tokens on, /healthz showed anyone the database path and counts."""
+    settings = Settings(data_dir=tmp_path, operator_token="op-secret")
+    with TestClient(create_app(settings)) as c:
+        anon = c.get("/healthz").json()
+        assert anon == {"status": "ok"}
+        full = c.get("/healthz", headers={"authorization": "Bearer op-secret"}).json()
+        assert full["database"].startswith(str(tmp_path)) and full["keyframes"] == 0
+
+
+def test_request_ids_are_sanitised(client):
+    """An X-Request-Id with a newline was logged as is (log injection)."""
+    r = client.get("/healthz", headers={"x-request-id": "abc\r\nfake log line"})
+    assert "\n" not in r.headers["x-request-id"] and r.headers["x-request-id"] != "abc"
+    r = client.get("/healthz", headers={"x-request-id": "robot-7.req:42"})
+    assert r.headers["x-request-id"] == "robot-7.req:42"
