@@ -298,8 +298,18 @@ def cmd_merge(args: argparse.Namespace) -> int:
     if len(set(ids)) != len(ids):
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out} exists and is not a folder")
     report = run_merge(
-        recs, out, _policy(args), args.vocab, args.place_db, args.aligner, max_views=args.max_views
+        recs,
+        out,
+        _policy(args),
+        args.vocab,
+        args.place_db,
+        args.aligner,
+        max_views=args.max_views,
+        quiet=args.quiet,
+        token=args.token,
     )
     merged = [r for r in ids if r not in report["unmerged"]]
     print(
@@ -333,9 +343,50 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+EPILOG = """examples:
+  fleetmap merge A=robots/alpha B=robots/bravo -o out/      # services started in-process
+  fleetmap serve place-db --port 8100 --data-dir /var/lib/fleetmap
+  fleetmap ingest robots/alpha --place-db http://host:8100
+  fleetmap overlaps alpha bravo --place-db http://host:8100 --json
+
+environment: FLEETMAP_PLACE_DB_URL, FLEETMAP_ALIGNER_URL (default service URLs),
+FLEETMAP_TOKEN (bearer token), FLEETMAP_LOG_FORMAT=json.
+exit status: 0 done, 1 an error while running (bad data, unreachable service), 2 a usage
+mistake, 130 interrupted."""
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fleetmap")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def _url_arg(p: argparse.ArgumentParser, flag: str, env: str, required: bool, what: str) -> None:
+    default = os.environ.get(env) or None
+    p.add_argument(
+        flag,
+        metavar="URL",
+        default=default,
+        required=required and default is None,
+        help=f"{what} (default: ${env}{'' if required else ', else one started in-process'})",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fleetmap", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="fleetmap",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"fleetmap {_version()}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bars (errors still shown)"
+    )
     parser.add_argument(
         "--token",
         default=os.environ.get("FLEETMAP_TOKEN"),
@@ -345,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("extract", help="frame structures of a robot folder's keyframes")
     p.add_argument("robot", metavar="[NAME=]ROBOT_DIR")
-    p.add_argument("-o", "--output", required=True, metavar="FRAMES_DIR")
+    p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FRAMES_DIR")
     p.add_argument("--vocab", help="vocabulary file (default: the shipped one)")
     _add_camera_args(p)
     _add_keyframe_args(p)
@@ -356,9 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p = vocab.add_parser("train", help="train a vocabulary (thesis Algorithm 1)")
     p.add_argument("inputs", nargs="+", metavar="IMAGES_OR_ROBOT_DIRS")
-    p.add_argument("-o", "--output", required=True, metavar="FILE")
-    p.add_argument("--gist-clusters", type=int, default=8)
-    p.add_argument("--words", type=int, default=500)
+    p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FILE")
+    p.add_argument("--gist-clusters", type=int, default=8, help="GIST codebook size")
+    p.add_argument("--words", type=int, default=500, help="SIFT visual words")
     p.add_argument("--stride", type=int, default=1, help="every n-th image of a folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--source", default="", help="text recorded as the training source")
@@ -373,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("ingest", help="extract robot folders and POST them to the place db")
     p.add_argument("robots", nargs="+", metavar="[NAME=]ROBOT_DIR")
-    p.add_argument("--place-db", required=True, metavar="URL")
+    _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
     p.add_argument("--vocab", help="vocabulary file (must be the service's)")
     _add_camera_args(p)
     _add_keyframe_args(p)
@@ -382,8 +433,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("overlaps", help="verified keyframe pairs between two robots")
     p.add_argument("robot_a")
     p.add_argument("robot_b")
-    p.add_argument("--place-db", required=True, metavar="URL")
-    p.add_argument("--json", action="store_true")
+    _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
+    p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
         "--wait",
         type=float,
@@ -395,25 +446,25 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("align", help="fit robot B's map frame into robot A's")
     p.add_argument("robot_a", metavar="[NAME=]ROBOT_DIR_A")
     p.add_argument("robot_b", metavar="[NAME=]ROBOT_DIR_B")
-    p.add_argument("--place-db", required=True, metavar="URL")
-    p.add_argument("--aligner", required=True, metavar="URL")
-    p.add_argument("--json", action="store_true")
+    _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
+    _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", True, "aligner")
+    p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
         "--method",
         default="default",
         choices=["default", "rigid", "similarity", "affine", "mlp", "icp", "fpfh"],
     )
     p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
-    p.add_argument("--wait", type=float, default=120.0)
+    p.add_argument("--wait", type=float, default=120.0, help="seconds to wait for overlaps")
     _add_camera_args(p)
     _add_keyframe_args(p)
     p.set_defaults(func=cmd_align)
 
     p = sub.add_parser("merge", help="the main job: merge N robots' maps into one")
     p.add_argument("robots", nargs="+", metavar="[NAME=]ROBOT_DIR")
-    p.add_argument("--out", required=True, metavar="OUT_DIR")
-    p.add_argument("--place-db", metavar="URL", help="default: start one in-process")
-    p.add_argument("--aligner", metavar="URL", help="default: start one in-process")
+    p.add_argument("-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR")
+    _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", False, "place database")
+    _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", False, "aligner")
     p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
     p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
     _add_camera_args(p)
@@ -422,9 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="render a synthetic fleet recording (TUM layout)")
     p.add_argument("out", metavar="OUT_DIR")
-    p.add_argument("--robots", type=int, default=3)
+    p.add_argument("--robots", type=int, default=3, help="how many robots")
     p.add_argument("--frames", type=int, default=30, help="frames per robot")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed")
     p.set_defaults(func=cmd_simulate)
     return parser
 
@@ -442,7 +493,11 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except FleetmapError as exc:
         print(f"fleetmap: error: {exc}", file=sys.stderr)
-        return 2
+        return 1
+    except OSError as exc:  # a path we cannot write or read: one line, not a traceback
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"fleetmap: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("fleetmap: interrupted", file=sys.stderr)
         return 130

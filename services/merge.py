@@ -201,6 +201,7 @@ def run_merge(
     overview.png and overlap_matrix.png. Stages: extract (every core) while the services
     start, ingest, overlaps, align, place (spanning tree, pose graph), write; the place
     database registers the links meanwhile."""
+    _check_reachable(place_db, aligner, token)  # before any long work
     out.mkdir(parents=True, exist_ok=True)
     timing = {"extract": 0.0, "ingest": 0.0, "overlaps": 0.0, "align": 0.0, "outputs": 0.0}
     t_all = time.perf_counter()
@@ -275,6 +276,14 @@ def run_merge(
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+def _check_reachable(place_db: str | None, aligner: str | None, token: str | None) -> None:
+    """Given service URLs answer /healthz (one try, a few seconds), or Unavailable."""
+    for url, client in ((place_db, PlaceDBClient), (aligner, AlignerClient)):
+        if url is not None:
+            with client(url, timeout=10, token=token) as c:
+                c.health()
 
 
 def _services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | None):

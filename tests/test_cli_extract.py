@@ -14,7 +14,7 @@ def test_extract_writes_one_decodable_frame_per_keyframe(tum_robot, tmp_path, ca
 
 
 def test_extract_reports_missing_folder(tmp_path, capsys):
-    assert main(["extract", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o")]) == 2
+    assert main(["extract", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o")]) == 1
     assert "Robot folder not found" in capsys.readouterr().err
 
 

@@ -77,7 +77,7 @@ def test_merge_reports_bad_input(tmp_path, capsys):
                 str(tmp_path / "o"),
             ]
         )
-        == 2
+        == 1
     )
     assert "Robot folder not found" in capsys.readouterr().err
     assert (
@@ -90,7 +90,7 @@ def test_merge_reports_bad_input(tmp_path, capsys):
                 str(tmp_path / "o"),
             ]
         )
-        == 2
+        == 1
     )
     assert "must differ" in capsys.readouterr().err
 
