@@ -48,6 +48,40 @@ def _add_keyframe_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_bag_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("ROS bags (.bag, or a ROS 2 bag folder): topics where ambiguous")
+    g.add_argument("--rgb-topic", help="sensor_msgs/Image colour topic")
+    g.add_argument("--depth-topic", help="sensor_msgs/Image depth topic (16UC1 mm, 32FC1 m)")
+    g.add_argument("--info-topic", help="sensor_msgs/CameraInfo topic")
+    g.add_argument("--pose-topic", help="PoseStamped or Odometry: camera in the map frame")
+
+
+def _topics(args: argparse.Namespace):
+    from shared.bags import BagTopics
+
+    return BagTopics(*(getattr(args, f"{k}_topic", None) for k in ("rgb", "depth", "info", "pose")))
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """A ROS bag robot written out as a TUM folder."""
+    from shared.bags import bag_to_tum, is_bag
+    from shared.dataset import read_recording
+
+    src, out = Path(args.bag), Path(args.output)
+    if not is_bag(src):
+        from shared.errors import BadRobotData
+
+        raise BadRobotData(f"{src}: not a ROS bag (.bag, or a folder with metadata.yaml)")
+    if out.exists():
+        from shared.errors import BadInput
+
+        raise BadInput(f"{out} exists: give a new folder")
+    bag_to_tum(src, out, _topics(args))
+    rec = read_recording(out)
+    print(f"{len(rec)} RGB-D frames with poses -> {out}")
+    return 0
+
+
 def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
     overrides = {
         k: getattr(args, k)
@@ -58,7 +92,7 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
         return None
     from shared.dataset import read_recording
 
-    base = read_recording(robot_dir).intrinsics.to_dict()
+    base = read_recording(robot_dir, topics=_topics(args)).intrinsics.to_dict()
     return Intrinsics.from_dict({**base, **overrides})
 
 
@@ -76,6 +110,7 @@ def _read_robots(args: argparse.Namespace, robot_args: list[str]) -> list:
                 _intrinsics(args, robot_dir),
                 require_depth=True,
                 require_poses=True,
+                topics=_topics(args),
             )
         )
     return recs
@@ -95,7 +130,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     from shared.vocabulary import load_vocabulary
 
     name, robot_dir = parse_robot_arg(args.robot)
-    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir))
+    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
     extractor = FrameExtractor(load_vocabulary(args.vocab))
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -156,6 +191,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=port,
         log_level="info" if args.verbose else "warning",
         timeout_graceful_shutdown=30,
+        # our middleware logs each request (path without query string, sanitised id);
+        # uvicorn's access line would log a token sent as ?token=... verbatim
+        access_log=False,
     )
     return 0
 
@@ -166,7 +204,7 @@ def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tup
     from shared.extract import FrameExtractor, extract_recording, keyframe_indices
 
     name, robot_dir = parse_robot_arg(robot_arg)
-    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir))
+    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
     n = len(keyframe_indices(rec, _policy(args)))
     frames = extract_recording(rec, FrameExtractor(vocab), _policy(args))
     for frame in tqdm(
@@ -400,6 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vocab", help="vocabulary file (default: the shipped one)")
     _add_camera_args(p)
     _add_keyframe_args(p)
+    _add_bag_args(p)
     p.set_defaults(func=cmd_extract)
 
     vocab = sub.add_parser("vocab", help="vocabularies").add_subparsers(
@@ -428,6 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vocab", help="vocabulary file (must be the service's)")
     _add_camera_args(p)
     _add_keyframe_args(p)
+    _add_bag_args(p)
     p.set_defaults(func=cmd_ingest)
 
     p = sub.add_parser("overlaps", help="verified keyframe pairs between two robots")
@@ -458,6 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait", type=float, default=120.0, help="seconds to wait for overlaps")
     _add_camera_args(p)
     _add_keyframe_args(p)
+    _add_bag_args(p)
     p.set_defaults(func=cmd_align)
 
     p = sub.add_parser("merge", help="the main job: merge N robots' maps into one")
@@ -469,7 +510,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
     _add_camera_args(p)
     _add_keyframe_args(p)
+    _add_bag_args(p)
     p.set_defaults(func=cmd_merge)
+
+    p = sub.add_parser("convert", help="write a ROS bag robot out as a TUM folder")
+    p.add_argument("bag", metavar="BAG", help="a ROS 1 .bag or a ROS 2 bag folder")
+    p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="DIR")
+    _add_bag_args(p)
+    p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser("simulate", help="render a synthetic fleet recording (TUM layout)")
     p.add_argument("out", metavar="OUT_DIR")

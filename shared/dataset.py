@@ -115,14 +115,21 @@ def read_recording(
     intrinsics: Intrinsics | None = None,
     require_depth: bool = False,
     require_poses: bool = False,
+    topics=None,
 ) -> Recording:
     """Read a robot folder in the TUM layout.
 
     Colour frames are kept only where a depth frame (and a pose, if `groundtruth.txt`
     exists) lies within `MAX_ASSOCIATION_GAP_S`. Intrinsics come from `intrinsics`, else
-    `camera.json`, else the TUM fr1 defaults.
+    `camera.json`, else the TUM fr1 defaults. `root` may also be a ROS bag
+    (`shared.bags`; `topics`: a `BagTopics` where message types are ambiguous).
     """
     root = Path(root)
+    from shared.bags import BagTopics, cached_tum, is_bag
+
+    if is_bag(root):  # a ROS bag: read as the TUM folder it converts to (cached)
+        robot_id = robot_id or root.resolve().stem
+        root = cached_tum(root, topics or BagTopics())
     if not root.is_dir():
         raise BadRobotData(f"Robot folder not found: {root}")
     robot_id = robot_id or root.resolve().name

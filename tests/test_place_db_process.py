@@ -42,11 +42,11 @@ def test_cli_ingest_overlaps_and_sigkill_restart(sun3d, tmp_path, capsys):
 
 
 def test_cli_reports_unreachable_service_and_unknown_robot(tmp_path, capsys):
-    assert main(["overlaps", "A", "B", "--place-db", "http://127.0.0.1:9"]) == 2
+    assert main(["overlaps", "A", "B", "--place-db", "http://127.0.0.1:9"]) == 1
     assert "Cannot reach" in capsys.readouterr().err
     svc = Service("place-db", tmp_path / "db").start()
     try:
-        assert main(["overlaps", "A", "B", "--place-db", svc.url]) == 2
+        assert main(["overlaps", "A", "B", "--place-db", svc.url]) == 1
         assert "Unknown robot 'A'" in capsys.readouterr().err
     finally:
         svc.stop()

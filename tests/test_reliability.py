@@ -99,3 +99,21 @@ def test_request_ids_are_sanitised(client):
     assert "\n" not in r.headers["x-request-id"] and r.headers["x-request-id"] != "abc"
     r = client.get("/healthz", headers={"x-request-id": "robot-7.req:42"})
     assert r.headers["x-request-id"] == "robot-7.req:42"
+
+
+def test_a_token_in_the_query_string_never_reaches_the_log(tmp_path):
+    """uvicorn's access line logged `?token=...` verbatim; now only our request line, path
+    without the query string."""
+    import httpx
+
+    from tests.servers import Service
+
+    svc = Service("place-db", tmp_path / "db").start()
+    try:
+        assert (
+            httpx.get(svc.url + "/healthz", params={"token": "SUPERSECRET123"}).status_code == 200
+        )
+    finally:
+        svc.stop()
+    log = svc.read_log()
+    assert "/healthz" in log and "SUPERSECRET123" not in log

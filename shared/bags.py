@@ -1,0 +1,216 @@
+"""Robots recorded as ROS bags, read with `rosbags` (pure Python, no ROS install).
+
+A ROS 1 `.bag`, a ROS 2 bag folder (`metadata.yaml`, sqlite3 or MCAP storage) or a lone
+`.mcap`/`.db3` file is turned into the TUM layout (CONTRACT.md section 1) in a cache folder,
+once per bag and topic choice, and every later stage reads that folder: colour from
+`sensor_msgs/Image` (rgb8, bgr8, rgba8, bgra8, mono8), depth from `sensor_msgs/Image` (16UC1
+in millimetres, or 32FC1 in metres, stored as millimetres), intrinsics from
+`sensor_msgs/CameraInfo`, camera-to-map poses from `geometry_msgs/PoseStamped` or
+`nav_msgs/Odometry` (frame_id = the robot's map frame). Topics are found by message type
+when there is one of each (two images: the one with a depth encoding is depth), else named
+with `BagTopics`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shared.errors import BadRobotData
+from shared.geometry import pose_to_tum
+
+IMAGE = "sensor_msgs/msg/Image"
+INFO = "sensor_msgs/msg/CameraInfo"
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
+DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Topic names to use; None: found by message type."""
+
+    rgb: str | None = None
+    depth: str | None = None
+    info: str | None = None
+    pose: str | None = None
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 bag, a ROS 2 bag folder or a lone ROS 2 storage file."""
+    path = Path(path)
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix in (".bag", ".mcap", ".db3") and path.is_file()
+
+
+def cached_tum(bag: Path, topics: BagTopics = BagTopics(), cache: Path | None = None) -> Path:
+    """The bag as a TUM folder in the cache (made on first use, reused while the bag is
+    unchanged)."""
+    bag = Path(bag).resolve()
+    st = bag.stat()
+    key = hashlib.sha256(
+        json.dumps([str(bag), st.st_size, st.st_mtime_ns, topics.__dict__]).encode()
+    ).hexdigest()[:16]
+    root = cache or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fleetmap"
+    out = root / "bags" / f"{bag.stem}-{key}"
+    if not (out / "groundtruth.txt").is_file():
+        tmp = out.with_name(out.name + f".tmp{os.getpid()}")
+        shutil.rmtree(tmp, ignore_errors=True)
+        bag_to_tum(bag, tmp, topics)
+        shutil.rmtree(out, ignore_errors=True)
+        tmp.rename(out)  # whole or not at all
+    return out
+
+
+def _reader(bag: Path):
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    paths = [bag]
+    if bag.is_file() and bag.suffix in (".mcap", ".db3"):
+        raise BadRobotData(f"{bag}: give the ROS 2 bag's folder (with metadata.yaml)")
+    return AnyReader(paths, default_typestore=get_typestore(Stores.LATEST))
+
+
+def _pick(conns, types: tuple[str, ...], given: str | None, what: str, flag: str):
+    if given is not None:
+        found = [c for c in conns if c.topic == given]
+        if not found:
+            raise BadRobotData(f"no topic {given!r} in the bag ({flag})")
+        return found[0]
+    found = [c for c in conns if c.msgtype in types]
+    if len(found) != 1:
+        names = sorted(c.topic for c in found)
+        raise BadRobotData(f"{len(found)} {what} topics {names}: choose one with {flag}")
+    return found[0]
+
+
+def _images(reader, conns, topics: BagTopics):
+    """(rgb connection, depth connection): given, or the two Image topics told apart by
+    their first message's encoding."""
+    if topics.rgb and topics.depth:
+        return (
+            _pick(conns, (IMAGE,), topics.rgb, "colour", "--rgb-topic"),
+            _pick(conns, (IMAGE,), topics.depth, "depth", "--depth-topic"),
+        )
+    images = [c for c in conns if c.msgtype == IMAGE]
+    rgb, depth = [], []
+    for c in images:
+        for conn, _, raw in reader.messages(connections=[c]):
+            enc = reader.deserialize(raw, conn.msgtype).encoding
+            (depth if enc in DEPTH_ENCODINGS else rgb).append(c)
+            break
+    if topics.rgb:
+        rgb = [_pick(conns, (IMAGE,), topics.rgb, "colour", "--rgb-topic")]
+    if topics.depth:
+        depth = [_pick(conns, (IMAGE,), topics.depth, "depth", "--depth-topic")]
+    if len(rgb) != 1 or len(depth) != 1:
+        raise BadRobotData(
+            f"colour image topics {sorted(c.topic for c in rgb)}, depth image topics "
+            f"{sorted(c.topic for c in depth)}: choose with --rgb-topic and --depth-topic"
+        )
+    return rgb[0], depth[0]
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+def _image(msg, depth: bool) -> np.ndarray:
+    h, w, enc = msg.height, msg.width, msg.encoding
+    data = np.asarray(msg.data, dtype=np.uint8)
+    rows = data.reshape(h, msg.step)
+    if depth:
+        if enc in ("16UC1", "mono16"):
+            img = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2")
+            return img.astype(np.uint16)
+        if enc == "32FC1":
+            m = rows[:, : 4 * w].copy().view(">f4" if msg.is_bigendian else "<f4")
+            mm = np.where(np.isfinite(m) & (m > 0), np.round(m * 1000.0), 0)
+            return np.clip(mm, 0, 65535).astype(np.uint16)
+        raise BadRobotData(f"depth encoding {enc!r}: expected 16UC1 (mm) or 32FC1 (m)")
+    channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
+    if enc not in channels:
+        raise BadRobotData(f"colour encoding {enc!r}: expected one of {sorted(channels)}")
+    img = rows[:, : channels[enc] * w].reshape(h, w, channels[enc])
+    convert = {
+        "rgb8": cv2.COLOR_RGB2BGR,
+        "rgba8": cv2.COLOR_RGBA2BGR,
+        "bgra8": cv2.COLOR_BGRA2BGR,
+        "mono8": cv2.COLOR_GRAY2BGR,
+    }
+    return cv2.cvtColor(img, convert[enc]) if enc in convert else img.copy()
+
+
+def _pose(msg) -> np.ndarray:
+    from shared.geometry import pose_from_tum
+
+    p = msg.pose.pose if hasattr(msg, "twist") else msg.pose  # Odometry or PoseStamped
+    t = np.array([p.position.x, p.position.y, p.position.z])
+    q = np.array([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
+    return pose_from_tum(t, q)
+
+
+def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
+    """Write the bag's colour, depth, intrinsics and poses as a TUM folder `out`."""
+    bag = Path(bag)
+    if not is_bag(bag):
+        raise BadRobotData(f"{bag}: not a ROS bag (.bag, or a folder with metadata.yaml)")
+    try:
+        reader = _reader(bag)
+        reader.open()
+    except BadRobotData:
+        raise
+    except Exception as exc:  # rosbags raises its own error classes per format
+        raise BadRobotData(f"{bag}: cannot read the bag: {exc}") from exc
+    try:
+        conns = list(reader.connections)
+        rgb_c, depth_c = _images(reader, conns, topics)
+        info_c = _pick(conns, (INFO,), topics.info, "CameraInfo", "--info-topic")
+        pose_c = _pick(conns, POSE_TYPES, topics.pose, "pose", "--pose-topic")
+        for sub in ("rgb", "depth"):
+            (out / sub).mkdir(parents=True, exist_ok=True)
+        lists = {"rgb": [], "depth": [], "gt": []}
+        camera = None
+        wanted = [rgb_c, depth_c, info_c, pose_c]
+        for conn, _, raw in reader.messages(connections=wanted):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == info_c.topic:
+                if camera is None:
+                    k = msg.k if hasattr(msg, "k") else msg.K  # ROS 2 and ROS 1 names
+                    K = np.asarray(k, dtype=float).reshape(3, 3)
+                    camera = {
+                        "fx": K[0, 0],
+                        "fy": K[1, 1],
+                        "cx": K[0, 2],
+                        "cy": K[1, 2],
+                        "depth_scale": 1000.0,
+                        "width": int(msg.width),
+                        "height": int(msg.height),
+                    }
+                continue
+            stamp = _stamp(msg)
+            if conn.topic == pose_c.topic:
+                tum = " ".join(f"{v:.9f}" for v in pose_to_tum(_pose(msg)))
+                lists["gt"].append(f"{stamp:.9f} {tum}")
+                continue
+            kind = "depth" if conn.topic == depth_c.topic else "rgb"
+            name = f"{kind}/{stamp:.9f}.png"
+            cv2.imwrite(str(out / name), _image(msg, kind == "depth"))
+            lists[kind].append(f"{stamp:.9f} {name}")
+    finally:
+        reader.close()
+    if camera is None or not lists["rgb"] or not lists["depth"] or not lists["gt"]:
+        counts = {k: len(v) for k, v in lists.items()}
+        raise BadRobotData(f"{bag}: incomplete recording {counts}, camera info: {bool(camera)}")
+    (out / "camera.json").write_text(json.dumps(camera, indent=1))
+    for name, key in (("rgb.txt", "rgb"), ("depth.txt", "depth"), ("groundtruth.txt", "gt")):
+        (out / name).write_text("\n".join(lists[key]) + "\n")
+    return out
