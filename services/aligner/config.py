@@ -21,7 +21,8 @@ class Settings(BaseSettings):
     max_body_bytes: int = 128 * 1024 * 1024  # enforced while streaming, chunked or not
     # decoded colour + depth pixels of all requests being aligned at once (about 8 bytes
     # each while aligned): bounds memory whatever the concurrency; more waits, then 503
-    max_pixels_in_flight: int = 64 * 1024 * 1024
+    max_pixels_in_flight: int = 32 * 1024 * 1024
+    max_requests_in_flight: int = 2  # /align requests past their body; more wait, then 503
     max_views: int = 32  # per robot in one request
     max_pairs: int = 512
     max_image_pixels: int = 4096 * 4096

@@ -22,7 +22,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         import torch  # noqa: F401
 
         app.state.clouds = OrderedDict()
-        app.state.pixels = common.PixelBudget(settings.max_pixels_in_flight)
+        app.state.pixels = common.PixelBudget(
+            settings.max_pixels_in_flight, requests=settings.max_requests_in_flight
+        )
         logging.getLogger(__name__).warning("aligner: %s", common.auth_summary(settings))
         yield
         app.state.clouds.clear()

@@ -123,22 +123,26 @@ async def _files(form, names: list[str], max_pixels: int) -> tuple[dict[str, byt
 async def align(request: Request) -> s.AlignAnswer:
     """Fit the transform from robot B's map frame into robot A's from RGB-D pairs."""
     st = request.app.state.settings
-    await read_body(request, st.max_body_bytes)  # chunked or not, cut off at the limit
-    form = await request.form(max_files=4 * st.max_views, max_fields=8)
-    meta = _parse_meta(form.get("meta"))
-    if len(meta.pairs) > st.max_pairs:
-        raise BadInput(f"At most {st.max_pairs} pairs, got {len(meta.pairs)}")
-    n_views = max(len(meta.views_a), len(meta.views_b)) or len(meta.pairs)
-    if n_views > st.max_views:
-        raise BadInput(f"At most {st.max_views} views per robot, got {n_views}")
-    files, pixels = await _files(form, _view_names(meta), st.max_image_pixels)
-    await form.close()
-    async with request.app.state.pixels.hold(pixels):
-        pairs = await run_in_threadpool(_views, files, meta)
-        del files
-        result, cloud = await run_in_threadpool(
-            align_request, pairs, meta.method, st.params(), meta.cloud, meta.colour
-        )
+    budget = request.app.state.pixels
+    async with budget.slot():  # before the body: requests that wait hold no memory
+        await read_body(request, st.max_body_bytes)  # chunked or not, cut off at the limit
+        form = await request.form(max_files=4 * st.max_views, max_fields=8)
+        meta = _parse_meta(form.get("meta"))
+        if len(meta.pairs) > st.max_pairs:
+            raise BadInput(f"At most {st.max_pairs} pairs, got {len(meta.pairs)}")
+        n_views = max(len(meta.views_a), len(meta.views_b)) or len(meta.pairs)
+        if n_views > st.max_views:
+            raise BadInput(f"At most {st.max_views} views per robot, got {n_views}")
+        files, pixels = await _files(form, _view_names(meta), st.max_image_pixels)
+        await form.close()
+        del form
+        request._body = b""  # the parts are in `files` now
+        async with budget.hold(pixels):
+            pairs = await run_in_threadpool(_views, files, meta)
+            del files
+            result, cloud = await run_in_threadpool(
+                align_request, pairs, meta.method, st.params(), meta.cloud, meta.colour
+            )
     answer = s.AlignAnswer(**result)
     if cloud is not None:
         cid = uuid.uuid4().hex[:12]
