@@ -176,9 +176,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.service == "place-db":
         from services.place_db.config import Settings
         from services.place_db.main import create_app
+        from shared.placedb import check_database_file
 
         overrides = {"data_dir": Path(args.data_dir)} if args.data_dir else {}
-        app = create_app(Settings(**overrides))
+        settings = Settings(**overrides)
+        check_database_file(settings.db_path)  # a damaged file: one line, exit 1
+        app = create_app(settings)
     else:
         from services.aligner.config import Settings as AlignerSettings
         from services.aligner.main import create_app as create_aligner

@@ -14,6 +14,7 @@ re-queued on start, so a crash loses no overlap either.
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import sqlite3
 import threading
@@ -129,6 +130,9 @@ class PlaceDB:
     ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # looked at before SQLite opens the database (opening writes a new log)
+        wal, marker = Path(str(self.path) + "-wal"), Path(str(self.path) + ".open")
+        lost_log = marker.exists() and not (wal.exists() and wal.stat().st_size > 0)
         self.vocabulary = vocabulary
         self.params = params
         self.retrain_policy = retrain or RetrainPolicy()
@@ -146,6 +150,10 @@ class PlaceDB:
         self._retraining = threading.Lock()
         self._closed = False
         self.storage_errors = 0  # stored frames that failed their checksum when read
+        self.failures = 0  # keyframes whose overlap detection raised
+        self.parked: dict[int, str] = {}  # keyframe -> reason, the last 100
+        self._stopping = False
+        self._check_last_close(lost_log)
         self._load()
         self._worker = None
         if background:
@@ -155,11 +163,45 @@ class PlaceDB:
     # --- storage --------------------------------------------------------------------
 
     def _connect(self) -> sqlite3.Connection:
-        db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=30.0)
-        db.execute("PRAGMA journal_mode=WAL")
-        db.execute("PRAGMA synchronous=FULL")
-        db.execute("PRAGMA foreign_keys=ON")
+        try:
+            db = sqlite3.connect(
+                self.path, check_same_thread=False, isolation_level=None, timeout=30.0
+            )
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=FULL")
+            db.execute("PRAGMA foreign_keys=ON")
+        except sqlite3.DatabaseError as exc:
+            raise StorageCorrupt(
+                f"{self.path} is not a readable SQLite database ({exc}): restore it from a "
+                "backup or move it away to start an empty one"
+            ) from exc
         return db
+
+    def _check_last_close(self, lost_log: bool) -> None:
+        """Say so when the last run did not close cleanly and its write-ahead log is gone:
+        keyframes acknowledged since the last checkpoint may be lost. A clean close
+        checkpoints the log into the database and removes the marker file `DB.open`; the
+        marker lives outside the database, where losing the log cannot take it along."""
+        self.startup_warning = ""
+        marker = Path(str(self.path) + ".open")
+        with self._write_lock:
+            try:
+                bad = self._db.execute("PRAGMA quick_check").fetchone()[0]
+            except sqlite3.DatabaseError as exc:
+                bad = str(exc)
+        if bad != "ok":
+            raise StorageCorrupt(f"{self.path} fails its integrity check: {bad}")
+        if lost_log:
+            self.startup_warning = (
+                f"{self.path} was not closed cleanly (opened {marker.read_text().strip()}) "
+                "and its write-ahead log is missing or empty: keyframes acknowledged since "
+                "the last checkpoint may be lost; compare with the robots' own records"
+            )
+            log.error("%s", self.startup_warning)
+        with open(marker, "w") as f:
+            f.write(time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+            f.flush()
+            os.fsync(f.fileno())
 
     def _reader(self) -> sqlite3.Connection:
         """One read connection per thread: WAL readers never block the writer."""
@@ -438,8 +480,9 @@ class PlaceDB:
 
     # --- queries --------------------------------------------------------------------
 
-    def robot_name(self, rid: int) -> str:
-        return self._robot_names[rid]
+    def robot_name(self, rid: int) -> str | None:
+        """The robot's name; None once it has been deleted (a query may race a delete)."""
+        return self._robot_names.get(rid)
 
     def robots(self) -> list[dict]:
         rows = (
@@ -571,6 +614,9 @@ class PlaceDB:
             "db_path": str(self.path),
             "db_bytes": self.path.stat().st_size if self.path.exists() else 0,
             "storage_errors": self.storage_errors,
+            "worker_failures": self.failures,
+            "parked": dict(self.parked),
+            "startup_warning": self.startup_warning,
         }
 
     # --- administration --------------------------------------------------------------
@@ -690,6 +736,11 @@ class PlaceDB:
                 )
                 n = self._insert_link_rows(rows, now)
                 self._db.execute("COMMIT")
+            except sqlite3.IntegrityError as exc:  # a robot deleted while the link was made
+                self._db.execute("ROLLBACK")
+                raise Conflict(
+                    f"{robot_a} or {robot_b} was deleted while the link was registered"
+                ) from exc
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise
@@ -823,13 +874,24 @@ class PlaceDB:
         while True:
             kf = self._queue.get()
             try:
-                if kf is None:
-                    return
-                self.process(kf)
-            except Exception:
-                log.exception("overlap detection failed for keyframe %s", kf)
+                # stopping: what is left stays unprocessed, re-queued at the next start
+                if kf is not None and not self._stopping:
+                    self.process(kf)
+            except Exception as exc:  # one keyframe's failure blocks none of the others
+                self._park(kf, exc)
             finally:
                 self._queue.task_done()
+            if kf is None:
+                return
+
+    def _park(self, kf: int, exc: Exception) -> None:
+        """Count a keyframe whose overlap detection failed and keep its reason (the last
+        100); it stays unprocessed in storage, so the next start tries it again."""
+        log.exception("overlap detection failed for keyframe %s", kf)
+        self.failures += 1
+        self.parked[kf] = f"{type(exc).__name__}: {exc}"[:300]
+        while len(self.parked) > 100:
+            self.parked.pop(next(iter(self.parked)))
 
     def process_pending(self) -> None:
         """Synchronously process queued keyframes (for use without the background worker)."""
@@ -841,19 +903,27 @@ class PlaceDB:
             try:
                 if kf is not None:
                     self.process(kf)
+            except Exception as exc:
+                self._park(kf, exc)
             finally:
                 self._queue.task_done()
 
     def close(self, drain_timeout: float = 10.0) -> None:
-        """Finish in-flight writes, stop the worker (unprocessed keyframes are re-queued at
-        the next start) and close the database."""
+        """Finish in-flight writes, let the worker finish the keyframe it is on (at most
+        `drain_timeout` in all; unprocessed keyframes are re-queued at the next start),
+        checkpoint the write-ahead log into the database and close it."""
         with self._write_lock:
             self._closed = True
         if self._worker is not None:
-            self.wait_idle(drain_timeout)
+            self._stopping = True
             self._queue.put(None)
             self._worker.join(timeout=drain_timeout)
         with self._write_lock:
+            try:
+                self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                Path(str(self.path) + ".open").unlink(missing_ok=True)
+            except (sqlite3.Error, OSError):
+                log.exception("closing %s", self.path)
             self._db.close()
 
 
@@ -885,3 +955,24 @@ def _centre(f: Frame) -> np.ndarray:
     if f.points is None or f.point_valid is None or not f.point_valid.any():
         return np.full(3, np.inf)
     return f.points[f.point_valid].astype(np.float64).mean(0)
+
+
+def check_database_file(path: Path) -> None:
+    """A quick integrity check of an existing database file, before a service starts on it:
+    StorageCorrupt with the reason (a damaged or foreign file), never a traceback."""
+    path = Path(path)
+    if not path.exists():
+        return
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            result = con.execute("PRAGMA quick_check").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.DatabaseError as exc:
+        result = str(exc)
+    if result != "ok":
+        raise StorageCorrupt(
+            f"{path} is damaged or not a place database ({result}): restore it from a backup "
+            "or move it away to start an empty one"
+        )

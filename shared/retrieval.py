@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import faiss
 import numpy as np
 
-from shared.errors import BadInput, StorageCorrupt
+from shared.errors import BadInput, StorageCorrupt, UnknownKeyframe
 from shared.frame import Frame
 from shared.matching import DEFAULT_MATCH_PARAMS, MatchParams, Verification, verify_pair
 
@@ -358,8 +358,8 @@ def local_stage(
     for c in chosen:
         try:
             other = load(c.kf_id)
-        except StorageCorrupt:  # logged and counted by the store; the other candidates stand
-            continue
+        except (StorageCorrupt, UnknownKeyframe):  # corrupted (logged, counted by the store),
+            continue  # or deleted while this query ran: the other candidates stand
         c.verification = verify_pair(
             query.keypoints,
             query.descriptors,

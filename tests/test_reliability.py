@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import sqlite3
 import struct
+import subprocess
+import sys
 import zlib
 
 import numpy as np
@@ -117,3 +119,108 @@ def test_a_token_in_the_query_string_never_reaches_the_log(tmp_path):
         svc.stop()
     log = svc.read_log()
     assert "/healthz" in log and "SUPERSECRET123" not in log
+
+
+def test_a_keyframe_failing_in_the_worker_is_parked_and_blocks_no_other(
+    tmp_path,
+    frames,  # noqa: F811
+    vocabulary,
+):
+    """A keyframe whose overlap detection raises (here: its stored frame corrupted) is
+    counted and parked with its reason; the others are processed and overlap as before."""
+    from shared.placedb import PlaceDB
+
+    db = PlaceDB(tmp_path / "p.sqlite", vocabulary, background=False)
+    ids = [db.add_keyframe("robot_a", d)[0] for d in frames["robot_a"]]
+    ids += [db.add_keyframe("robot_b", d)[0] for d in frames["robot_b"]]
+    with db._write_lock:
+        db._db.execute("UPDATE keyframes SET data=zeroblob(64) WHERE id=?", (ids[3],))
+    db.process_pending()
+    st = db.stats()
+    assert st["worker_failures"] == 1 and "StorageCorrupt" in st["parked"][ids[3]]
+    assert st["pending"] == 0
+    assert db.overlaps("robot_a", "robot_b")  # the SUN3D pair's verified overlap still found
+    db.close()
+
+
+def test_a_damaged_database_file_is_one_line_not_a_traceback(tmp_path):
+    (tmp_path / "place_db.sqlite").write_bytes(b"this is not sqlite " * 100)
+    r = subprocess.run(
+        [sys.executable, "-m", "services.cli", "serve", "place-db", "--data-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1 and "is damaged or not a place database" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_a_deleted_write_ahead_log_after_a_crash_is_reported(tmp_path, frames):  # noqa: F811
+    """A truncated or deleted WAL silently lost acknowledged keyframes, with no log line."""
+    import httpx
+
+    from tests.servers import Service
+
+    svc = Service("place-db", tmp_path / "db").start()
+    for d in frames["robot_a"][:3]:
+        assert (
+            httpx.post(svc.url + "/robots/robot_a/keyframes", content=d, headers=OCTET).status_code
+            == 201
+        )
+    svc.kill()  # SIGKILL: the acknowledged keyframes live in the write-ahead log
+    wal = next((tmp_path / "db").glob("*-wal"))
+    wal.unlink()
+    again = Service("place-db", tmp_path / "db").start()
+    try:
+        h = httpx.get(again.url + "/healthz").json()
+        assert h["status"] == "degraded" and "write-ahead log is missing" in h["startup_warning"]
+    finally:
+        again.stop()
+    assert "write-ahead log is missing" in again.read_log()
+    # a clean stop checkpoints: the next start has nothing to warn about
+    third = Service("place-db", tmp_path / "db").start()
+    try:
+        assert httpx.get(third.url + "/healthz").json()["status"] == "ok"
+    finally:
+        third.stop()
+
+
+def test_queries_and_links_racing_deletes_never_answer_5xx(tmp_path, frames):  # noqa: F811
+    """/query racing DELETE /robots was a 500 (KeyError), PUT /links racing it an
+    IntegrityError 500. Bounded: 4 rounds of delete and re-ingest under queries and links."""
+    import threading
+
+    import httpx
+
+    from tests.servers import Service
+
+    svc = Service("place-db", tmp_path / "db").start()
+    statuses, stop = [], threading.Event()
+    eye = {"transform": np.eye(4).tolist()}
+
+    def hammer() -> None:
+        with httpx.Client(base_url=svc.url, timeout=60) as c:
+            while not stop.is_set():
+                statuses.append(
+                    c.post("/query", content=frames["robot_b"][0], headers=OCTET).status_code
+                )
+                statuses.append(c.put("/links/robot_a/robot_b", json=eye).status_code)
+
+    try:
+        with httpx.Client(base_url=svc.url, timeout=60) as c:
+            for d in frames["robot_a"]:
+                c.post("/robots/robot_a/keyframes", content=d, headers=OCTET)
+            workers = [threading.Thread(target=hammer) for _ in range(2)]
+            for w in workers:
+                w.start()
+            for _ in range(4):
+                for d in frames["robot_b"]:
+                    c.post("/robots/robot_b/keyframes", content=d, headers=OCTET)
+                assert c.delete("/robots/robot_b").status_code == 200
+            stop.set()
+            for w in workers:
+                w.join()
+        assert statuses and max(statuses) < 500, sorted(set(statuses))
+    finally:
+        stop.set()
+        svc.stop()

@@ -41,9 +41,12 @@ def healthz(request: Request) -> s.Health:
     except (Unauthorized, Forbidden):  # anonymous on a secured service: liveness only
         return s.Health(status="ok" if ok else "degraded")
     st = db.stats()
+    healthy = ok and not st["storage_errors"] and not st["startup_warning"]
     return s.Health(
-        status="ok" if ok and not st["storage_errors"] else "degraded",
+        status="ok" if healthy else "degraded",
         storage_errors=st["storage_errors"],
+        worker_failures=st["worker_failures"],
+        startup_warning=st["startup_warning"] or None,
         keyframes=st["keyframes"],
         robots=st["robots"],
         pending=st["pending"],
@@ -144,9 +147,11 @@ async def query(
     frame = decode(body)
     flt = db.make_filter(robot, exclude_robot, max_stamp)
     r = await run_in_threadpool(db.query, frame, flt)
+    verified = [_winner(db, c) for c in r.verified if db.robot_name(c.robot) is not None]
     return s.QueryAnswer(
-        winner=_winner(db, r.winner) if r.winner else None,
-        verified=[_winner(db, c) for c in r.verified],
+        # a candidate whose robot was deleted while the query ran is left out
+        winner=next(iter(verified), None),
+        verified=verified,
         stages=[s.StageInfo(name=x.name, kept=x.kept, ms=x.ms) for x in r.stages],
         database_size=r.database_size,
         total_ms=r.total_ms,

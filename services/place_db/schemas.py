@@ -21,6 +21,8 @@ class Health(BaseModel):
     index_clusters: int | None = None
     index_cluster_max: int | None = None
     storage_errors: int | None = None
+    worker_failures: int | None = None
+    startup_warning: str | None = None
     access_control: str | None = None
 
 
