@@ -173,6 +173,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run one service in the foreground until SIGTERM/SIGINT."""
     import uvicorn
 
+    from services.common import header_timeout_protocol
+
     if args.service == "place-db":
         from services.place_db.config import Settings
         from services.place_db.main import create_app
@@ -197,6 +199,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         # our middleware logs each request (path without query string, sanitised id);
         # uvicorn's access line would log a token sent as ?token=... verbatim
         access_log=False,
+        http=header_timeout_protocol(),
     )
     return 0
 

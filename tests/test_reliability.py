@@ -224,3 +224,39 @@ def test_queries_and_links_racing_deletes_never_answer_5xx(tmp_path, frames):  #
     finally:
         stop.set()
         svc.stop()
+
+
+def test_slowloris_connections_are_closed(tmp_path):
+    """50 connections sending their headers slowly were never closed; now each is cut off
+    at the header deadline (10 s) while the service keeps answering."""
+    import socket
+    import time
+
+    import httpx
+
+    from tests.servers import Service
+
+    svc = Service("place-db", tmp_path / "db").start()
+    socks = []
+    try:
+        for _ in range(20):
+            s = socket.create_connection(("127.0.0.1", svc.port))
+            s.sendall(b"POST /query HTTP/1.1\r\nHost: x\r\n")  # and never the rest
+            socks.append(s)
+        assert httpx.get(svc.url + "/healthz").status_code == 200
+        end, closed = time.monotonic() + 30, set()
+        while time.monotonic() < end and len(closed) < len(socks):
+            for k, s in enumerate(socks):
+                s.settimeout(0.05)
+                try:
+                    if s.recv(64) == b"":
+                        closed.add(k)
+                except TimeoutError:
+                    pass
+                except OSError:
+                    closed.add(k)
+        assert len(closed) == len(socks)
+    finally:
+        for s in socks:
+            s.close()
+        svc.stop()
