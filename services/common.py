@@ -108,10 +108,17 @@ def install(app: FastAPI) -> None:
         return response
 
 
-async def read_body(request: Request, limit: int) -> bytes:
+async def read_body(
+    request: Request, limit: int, content_types: tuple[str, ...] | None = None
+) -> bytes:
     """The request body, refused with 413 as soon as it passes `limit` bytes (checked on the
     declared length first, then while streaming, so an oversized body is never held whole).
     Compressed bodies are refused (415): a small gzip could expand past any limit."""
+    if content_types is not None:  # a missing Content-Type is taken as the first
+        given = request.headers.get("content-type", content_types[0])
+        given = given.split(";")[0].strip().lower()
+        if given not in content_types:
+            raise UnsupportedEncoding(f"Content-Type {given!r}: send {' or '.join(content_types)}")
     encoding = request.headers.get("content-encoding", "identity").strip().lower()
     if encoding not in ("", "identity"):
         raise UnsupportedEncoding(

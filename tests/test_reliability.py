@@ -260,3 +260,14 @@ def test_slowloris_connections_are_closed(tmp_path):
         for s in socks:
             s.close()
         svc.stop()
+
+
+def test_frames_sent_as_anything_but_octet_stream_are_415(client, frames):  # noqa: F811
+    """Any Content-Type was accepted."""
+    r = client.post(
+        "/robots/robot_a/keyframes",
+        content=frames["robot_a"][0],
+        headers={"content-type": "text/plain"},
+    )
+    assert r.status_code == 415 and "application/octet-stream" in r.json()["detail"]
+    assert _post(client, "robot_a", frames["robot_a"][0]).status_code == 201

@@ -22,6 +22,7 @@ from shared.correspondences import RGBDView
 from shared.errors import BadInput, PayloadTooLarge, UnknownKeyframe
 
 router = APIRouter()
+FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
 
 
 @router.get("/healthz", response_model=s.Health)
@@ -125,7 +126,8 @@ async def align(request: Request) -> s.AlignAnswer:
     st = request.app.state.settings
     budget = request.app.state.pixels
     async with budget.slot():  # before the body: requests that wait hold no memory
-        await read_body(request, st.max_body_bytes)  # chunked or not, cut off at the limit
+        # chunked or not, cut off at the limit
+        await read_body(request, st.max_body_bytes, FORM_TYPES)
         form = await request.form(max_files=4 * st.max_views, max_fields=8)
         meta = _parse_meta(form.get("meta"))
         if len(meta.pairs) > st.max_pairs:

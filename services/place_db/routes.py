@@ -68,7 +68,9 @@ def healthz(request: Request) -> s.Health:
 async def ingest(robot_id: str, request: Request, response: Response) -> s.KeyframeCreated:
     """Store one keyframe's frame structure durably; 201 once it is on disk."""
     check_access(request, robot=robot_id)  # before the body is read
-    body = await read_body(request, request.app.state.settings.max_body_bytes)
+    body = await read_body(
+        request, request.app.state.settings.max_body_bytes, ("application/octet-stream",)
+    )
     kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body)
     if not created:
         response.status_code = 200
@@ -142,7 +144,9 @@ async def query(
     max_stamp: float | None = Query(None, allow_inf_nan=False),
 ) -> s.QueryAnswer:
     """The retrieval cascade's answer for one frame: winner, verified list, stage counts."""
-    body = await read_body(request, request.app.state.settings.max_body_bytes)
+    body = await read_body(
+        request, request.app.state.settings.max_body_bytes, ("application/octet-stream",)
+    )
     db = _db(request)
     frame = decode(body)
     flt = db.make_filter(robot, exclude_robot, max_stamp)
