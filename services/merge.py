@@ -100,7 +100,7 @@ def embedded_process(kind: str, data_dir: Path | None = None):
                     tail = errors.read().decode(errors="replace").strip().splitlines()[-1:]
                     raise Unavailable(f"embedded {kind} exited ({proc.returncode}): {tail}")
                 try:
-                    client.health()
+                    client.health(retry=False)
                     break
                 except (Unavailable, ServiceError):
                     if time.monotonic() > end:

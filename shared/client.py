@@ -55,20 +55,38 @@ class _Client:
         self.url = url.rstrip("/")
         self.http = httpx.Client(base_url=self.url, timeout=timeout, headers=headers)
 
-    def _call(self, method: str, path: str, **kw) -> httpx.Response:
-        try:
-            return _raise_for(self.http.request(method, path, **kw))
-        except httpx.TransportError as exc:
-            raise Unavailable(f"Cannot reach {self.url}{path}: {exc}") from exc
+    #: Waits before the retries of a request that could not connect or got a 503.
+    RETRY_WAITS_S = (0.5, 1.5)
 
-    def health(self) -> dict:
-        return self._call("GET", "/healthz").json()
+    def _call(self, method: str, path: str, retry: bool = True, **kw) -> httpx.Response:
+        """One request, retried after a refused connection (nothing was sent) or a 503
+        (the service asked for it, `Retry-After` honoured up to 10 s); other failures are
+        raised at once, so a request is never sent twice after it reached the service."""
+        waits = list(self.RETRY_WAITS_S) if retry else []
+        while True:
+            try:
+                resp = self.http.request(method, path, **kw)
+            except httpx.ConnectError as exc:
+                if not waits:
+                    raise Unavailable(f"Cannot reach {self.url}{path}: {exc}") from exc
+                time.sleep(waits.pop(0))
+                continue
+            except httpx.TransportError as exc:
+                raise Unavailable(f"Cannot reach {self.url}{path}: {exc}") from exc
+            if resp.status_code == 503 and waits:
+                after, wait = resp.headers.get("retry-after", ""), waits.pop(0)
+                time.sleep(min(float(after), 10.0) if after.isdigit() else wait)
+                continue
+            return _raise_for(resp)
+
+    def health(self, retry: bool = True) -> dict:
+        return self._call("GET", "/healthz", retry=retry).json()
 
     def wait_ready(self, timeout: float = 30.0) -> None:
         end = time.monotonic() + timeout
         while True:
             try:
-                self.health()
+                self.health(retry=False)
                 return
             except (Unavailable, ServiceError):
                 if time.monotonic() > end:

@@ -83,3 +83,43 @@ def test_merge_sends_the_token_to_secured_services(tmp_path, capsys):
         db.stop()
         al.stop()
     assert Path(out / "merged.ply").stat().st_size > 0
+
+
+def test_clients_retry_a_503_and_honour_retry_after():
+    """A service that answers 503 (Retry-After: 1) once, then 200: the client's call
+    succeeds; a refused connection is retried too, then reported in one line."""
+    import http.server
+    import threading
+    import time
+
+    from shared.client import PlaceDBClient
+    from shared.errors import Unavailable
+
+    hits = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 (the stdlib's name)
+            hits.append(time.monotonic())
+            busy = len(hits) == 1
+            body = b'{"detail": "busy"}' if busy else b'{"status": "ok"}'
+            self.send_response(503 if busy else 200)
+            if busy:
+                self.send_header("retry-after", "1")
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with PlaceDBClient(f"http://127.0.0.1:{server.server_port}") as c:
+            assert c.health() == {"status": "ok"}
+        assert len(hits) == 2 and hits[1] - hits[0] >= 0.9  # waited as told
+    finally:
+        server.shutdown()
+    with PlaceDBClient("http://127.0.0.1:9") as c, pytest.raises(Unavailable, match="Cannot reach"):
+        c.health()
