@@ -177,6 +177,34 @@ class PlaceDB:
             ) from exc
         return db
 
+    def _note_acknowledged(self, kf_id: int) -> None:
+        """Record, outside SQLite, the newest keyframe id committed: at the next start a
+        database that has lost acknowledged keyframes (its write-ahead log deleted or
+        truncated) is told from one that has not."""
+        path = Path(str(self.path) + ".acked")
+        tmp = path.with_suffix(".acked.tmp")
+        with open(tmp, "w") as f:
+            f.write(str(kf_id))
+            f.flush()
+            os.fsync(f.fileno())
+        tmp.replace(path)
+
+    def _check_acknowledged(self) -> str:
+        path = Path(str(self.path) + ".acked")
+        try:
+            acked = int(path.read_text())
+        except (OSError, ValueError):
+            return ""
+        row = self._db.execute("SELECT seq FROM sqlite_sequence WHERE name='keyframes'").fetchone()
+        have = int(row[0]) if row else 0
+        if have >= acked:
+            return ""
+        return (
+            f"{self.path} has keyframe ids up to {have} but ids up to {acked} were "
+            "acknowledged: keyframes were lost (write-ahead log deleted or truncated?); "
+            "the robots should re-send theirs (identical frames are accepted again)"
+        )
+
     def _check_last_close(self, lost_log: bool) -> None:
         """Say so when the last run did not close cleanly and its write-ahead log is gone:
         keyframes acknowledged since the last checkpoint may be lost. A clean close
@@ -191,12 +219,15 @@ class PlaceDB:
                 bad = str(exc)
         if bad != "ok":
             raise StorageCorrupt(f"{self.path} fails its integrity check: {bad}")
-        if lost_log:
+        self.startup_warning = self._check_acknowledged()
+        has_acked = Path(str(self.path) + ".acked").exists()
+        if lost_log and not has_acked:  # no record of what was acknowledged: the heuristic
             self.startup_warning = (
                 f"{self.path} was not closed cleanly (opened {marker.read_text().strip()}) "
                 "and its write-ahead log is missing or empty: keyframes acknowledged since "
                 "the last checkpoint may be lost; compare with the robots' own records"
             )
+        if self.startup_warning:
             log.error("%s", self.startup_warning)
         with open(marker, "w") as f:
             f.write(time.strftime("%Y-%m-%dT%H:%M:%S%z"))
@@ -406,6 +437,8 @@ class PlaceDB:
                 it.result = (int(cur.lastrowid), True)
                 added.append(it)
             self._db.execute("COMMIT")
+            if added:
+                self._note_acknowledged(max(it.result[0] for it in added))
         except BaseException as exc:
             self._db.execute("ROLLBACK")
             for name in new_robots:
