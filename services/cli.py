@@ -190,6 +190,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
         app = create_aligner(AlignerSettings())
     port = args.port or (8100 if args.service == "place-db" else 8200)
+    from services.common import auth_summary
+
+    log.warning(
+        "fleetmap %s %s listening on http://%s:%d (%s)",
+        args.service,
+        _version(),
+        args.host,
+        port,
+        auth_summary(app.state.settings),
+    )
     uvicorn.run(
         app,
         host=args.host,

@@ -97,13 +97,22 @@ def install(app: FastAPI) -> None:
         t = time.perf_counter()
         response = await call_next(request)
         response.headers["x-request-id"] = rid
+        ms = round(1000 * (time.perf_counter() - t), 1)
+        fields = {
+            "request_id": rid,
+            "method": request.method,
+            "path": request.url.path,
+            "status": response.status_code,
+            "ms": ms,
+        }
         log.info(
             "%s %s %s %d %.1fms",
             rid,
             request.method,
             request.url.path,
             response.status_code,
-            1000 * (time.perf_counter() - t),
+            ms,
+            extra=fields,
         )
         return response
 

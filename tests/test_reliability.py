@@ -268,3 +268,27 @@ def test_frames_sent_as_anything_but_octet_stream_are_415(client, frames):  # no
     )
     assert r.status_code == 415 and "application/octet-stream" in r.json()["detail"]
     assert _post(client, "robot_a", frames["robot_a"][0]).status_code == 201
+
+
+def test_json_logs_carry_request_fields_and_a_start_line(tmp_path):
+    """JSON logs put request id, method, path, status and time in one message string, and
+    a served place database printed no 'listening on' line."""
+    import json as jsonlib
+
+    import httpx
+
+    from tests.servers import Service
+
+    svc = Service("place-db", tmp_path / "db", env={"FLEETMAP_LOG_FORMAT": "json"}).start()
+    try:
+        httpx.get(svc.url + "/healthz", headers={"x-request-id": "probe-1"})
+    finally:
+        svc.stop()
+    lines = [jsonlib.loads(x) for x in svc.read_log().splitlines() if x.startswith("{")]
+    start = [x for x in lines if "listening on" in x["message"]]
+    assert (
+        start and f":{svc.port}" in start[0]["message"] and "access control" in start[0]["message"]
+    )
+    req = [x for x in lines if x.get("request_id") == "probe-1"]
+    assert req and req[0]["method"] == "GET" and req[0]["path"] == "/healthz"
+    assert req[0]["status"] == 200 and req[0]["ms"] >= 0
