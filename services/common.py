@@ -11,9 +11,10 @@ import time
 import uuid
 from typing import Annotated
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Request, Security
 from fastapi.responses import JSONResponse
-from pydantic import AfterValidator
+from fastapi.security import HTTPBearer
+from pydantic import AfterValidator, BaseModel, Field
 
 from shared.errors import (
     BadFrame,
@@ -252,14 +253,67 @@ def check_access(request: Request, robot: str | None = None, operator: bool = Fa
     return f"robot:{owner}"
 
 
-def operator_only(request: Request) -> None:
+#: The bearer scheme, declared so OpenAPI and Swagger UI (its Authorize button) know it;
+#: `check_access` does the checking, with the robot-or-operator rules FastAPI's class lacks.
+bearer = HTTPBearer(
+    auto_error=False,
+    description="The operator's token, or a robot's for its own keyframes; none on an open "
+    "deployment.",
+)
+
+
+def operator_only(request: Request, _: object = Security(bearer)) -> None:
     """Dependency: the operator token (or an open deployment)."""
     check_access(request, operator=True)
 
 
-def any_token(request: Request) -> None:
+def any_token(request: Request, _: object = Security(bearer)) -> None:
     """Dependency: any valid token (or an open deployment)."""
     check_access(request)
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(examples=["Unknown robot 'alpha'"])
+    error: str = Field(examples=["UnknownRobot"], description="the error class")
+
+
+#: Every error status the services answer, for each route's OpenAPI entry.
+ERROR_RESPONSES = {
+    code: {"model": ErrorBody, "description": text}
+    for code, text in {
+        400: "undecodable frame",
+        401: "missing or unknown token",
+        403: "a valid token without the right",
+        404: "unknown robot, keyframe or cloud",
+        408: "the request body stalled",
+        409: "conflicting re-send, or a robot deleted meanwhile",
+        413: "body, image or pixel budget too large",
+        415: "compressed body or wrong Content-Type",
+        422: "valid but unusable input",
+        500: "stored data failed its integrity check",
+        503: "busy (Retry-After) or a dependency unreachable",
+    }.items()
+}
+
+
+def install_docs(app: FastAPI) -> None:
+    """/docs served with Swagger UI's own files from this service (the swagger-ui-bundle
+    package), so it works on a robot network with no internet."""
+    import swagger_ui_bundle
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.staticfiles import StaticFiles
+
+    app.mount("/static/swagger", StaticFiles(directory=swagger_ui_bundle.swagger_ui_path))
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json",
+            title=f"{app.title} - API",
+            swagger_js_url="/static/swagger/swagger-ui-bundle.js",
+            swagger_css_url="/static/swagger/swagger-ui.css",
+            swagger_favicon_url="/static/swagger/favicon-32x32.png",
+        )
 
 
 class JsonFormatter(logging.Formatter):

@@ -120,3 +120,26 @@ def test_frame_robot_must_match_even_with_operator_token(secured):
     f = decode(_frame("A"))
     r = secured.post("/robots/B/keyframes", content=encode(f), headers={**OCTET, **_auth(OP)})
     assert r.status_code == 422 and "posted for 'B'" in r.json()["detail"]
+
+
+@pytest.mark.parametrize("kind", ["place-db", "aligner"])
+def test_openapi_declares_bearer_errors_and_serves_its_docs_offline(tmp_path, kind):
+    """Issue 14: no security scheme (no Authorize button), only 422 declared, /align with
+    no body in the schema, /docs loading Swagger UI from a CDN (blank on an offline robot
+    network)."""
+    import re
+
+    app = create_app(Settings(data_dir=tmp_path)) if kind == "place-db" else create_aligner()
+    with TestClient(app) as c:
+        spec = c.get("/openapi.json").json()
+        assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
+        path, method = ("/overlaps", "get") if kind == "place-db" else ("/align", "post")
+        op = spec["paths"][path][method]
+        assert op["security"] == [{"HTTPBearer": []}]
+        assert {"401", "403", "413", "503"} <= set(op["responses"])
+        if kind == "aligner":
+            assert "multipart/form-data" in op["requestBody"]["content"]
+        page = c.get("/docs").text
+        assert not re.findall(r"https?://(?!127\.0\.0\.1)", page)  # nothing fetched from outside
+        for asset in re.findall(r"(/static/swagger/[\w.-]+)", page):
+            assert c.get(asset).status_code == 200

@@ -33,9 +33,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="fleetmap aligner",
         version="0.1.0",
         lifespan=lifespan,
+        docs_url=None,  # served from local files by common.install_docs
+        redoc_url=None,
         description="Fits the transform between two robots' maps from RGB-D pairs.",
     )
     app.state.settings = settings
     common.install(app)
+    common.install_docs(app)
     app.include_router(router)
     return app

@@ -15,13 +15,13 @@ from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from services.aligner import schemas as s
-from services.common import any_token, read_body
+from services.common import ERROR_RESPONSES, any_token, read_body
 from shared.align import align_request
 from shared.camera import Intrinsics
 from shared.correspondences import RGBDView
 from shared.errors import BadInput, PayloadTooLarge, UnknownKeyframe
 
-router = APIRouter()
+router = APIRouter(responses=ERROR_RESPONSES)
 FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
 
 
@@ -115,11 +115,40 @@ async def _files(form, names: list[str], max_pixels: int) -> tuple[dict[str, byt
     return files, total
 
 
+ALIGN_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "multipart/form-data: `meta` (AlignMeta as JSON) and, per view, "
+        "`a{i}_rgb`, `a{i}_depth` (robot A's view i) and `b{j}_rgb`, `b{j}_depth` (robot B's "
+        "view j): colour in any format OpenCV reads (PNG recommended), depth as 16-bit "
+        "single-channel PNG, metres = value / depth_scale. See services/aligner/schemas.py.",
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["meta"],
+                    "properties": {
+                        "meta": {"type": "string", "description": "AlignMeta as JSON"},
+                        "a0_rgb": {"type": "string", "format": "binary"},
+                        "a0_depth": {"type": "string", "format": "binary"},
+                        "b0_rgb": {"type": "string", "format": "binary"},
+                        "b0_depth": {"type": "string", "format": "binary"},
+                    },
+                    "additionalProperties": {"type": "string", "format": "binary"},
+                },
+                "encoding": {"meta": {"contentType": "application/json"}},
+            }
+        },
+    }
+}
+
+
 @router.post(
     "/align",
     response_model=s.AlignAnswer,
     response_model_exclude_none=True,
     dependencies=[Depends(any_token)],
+    openapi_extra=ALIGN_BODY,
 )
 async def align(request: Request) -> s.AlignAnswer:
     """Fit the transform from robot B's map frame into robot A's from RGB-D pairs."""

@@ -58,9 +58,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="fleetmap place database",
         version="0.1.0",
         lifespan=lifespan,
+        docs_url=None,  # served from local files by common.install_docs
+        redoc_url=None,
         description="Keyframes of a robot fleet and the overlaps between their maps.",
     )
     app.state.settings = settings
     common.install(app)
+    common.install_docs(app)
     app.include_router(router)
     return app

@@ -7,17 +7,25 @@ import time
 from typing import Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response, Security
 from starlette.concurrency import run_in_threadpool
 
-from services.common import any_token, auth_summary, check_access, operator_only, read_body
+from services.common import (
+    ERROR_RESPONSES,
+    any_token,
+    auth_summary,
+    bearer,
+    check_access,
+    operator_only,
+    read_body,
+)
 from services.place_db import schemas as s
 from shared.errors import BadInput, Forbidden, Unauthorized
 from shared.frame import decode
 from shared.placedb import PlaceDB
 from shared.retrieval import Candidate
 
-router = APIRouter()
+router = APIRouter(responses=ERROR_RESPONSES)
 FRAME_BODY = {
     "requestBody": {
         "required": True,
@@ -64,6 +72,7 @@ def healthz(request: Request) -> s.Health:
     response_model=s.KeyframeCreated,
     openapi_extra=FRAME_BODY,
     responses={200: {"model": s.KeyframeCreated}},
+    dependencies=[Security(bearer)],  # the robot's own token or the operator's
 )
 async def ingest(robot_id: str, request: Request, response: Response) -> s.KeyframeCreated:
     """Store one keyframe's frame structure durably; 201 once it is on disk."""
