@@ -362,8 +362,10 @@ def cmd_merge(args: argparse.Namespace) -> int:
         args.place_db,
         args.aligner,
         max_views=args.max_views,
+        voxel=args.voxel,
         quiet=args.quiet,
         token=args.token,
+        pcd=args.pcd,
     )
     merged = [r for r in ids if r not in report["unmerged"]]
     print(
@@ -524,6 +526,10 @@ def build_parser() -> argparse.ArgumentParser:
     _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", False, "aligner")
     p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
     p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
+    p.add_argument("--pcd", action="store_true", help="also write merged.pcd (PCL's format)")
+    p.add_argument(
+        "--voxel", type=float, default=0.03, metavar="M", help="merged map voxel size (0.03 m)"
+    )
     _add_camera_args(p)
     _add_keyframe_args(p)
     _add_bag_args(p)

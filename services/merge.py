@@ -34,7 +34,7 @@ from shared.errors import Unavailable
 from shared.extract import keyframe_indices
 from shared.extract_pool import extract_keyframes
 from shared.geometry import apply, pose_to_tum
-from shared.mapcloud import ROBOT_COLOURS, MapCloud, write_ply
+from shared.mapcloud import ROBOT_COLOURS, MapCloud, write_pcd, write_ply
 from shared.pairs import load_view, select_views
 
 log = logging.getLogger(__name__)
@@ -196,6 +196,7 @@ def run_merge(
     quiet: bool = False,
     token: str | None = None,
     workers: int | None = None,
+    pcd: bool = False,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
     overview.png and overlap_matrix.png. Stages: extract (every core) while the services
@@ -230,7 +231,7 @@ def run_merge(
         t = time.perf_counter()
         placed, chain = spanning_placement(ids, edges)
         placed, optimised = optimise_poses(placed, edges, ids[0], chain)
-        drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel)
+        drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd)
         timing["outputs"] = time.perf_counter() - t
         t = time.perf_counter()
         for k, future in links.items():
@@ -266,6 +267,7 @@ def run_merge(
             "keyframes": dataclasses.asdict(policy) if dataclasses.is_dataclass(policy) else None,
             "max_views": max_views,
             "voxel_m": voxel,
+            "pcd": pcd,
             "vocabulary": str(vocab_path) if vocab_path else "default",
         },
     }
@@ -399,7 +401,9 @@ class Drawing:
     downs: list = dataclasses.field(default_factory=list)  # cameras' image-down axes
 
 
-def write_maps(out: Path, recs, kf_index, clouds, placed, edges, voxel: float = 0.03) -> Drawing:
+def write_maps(
+    out: Path, recs, kf_index, clouds, placed, edges, voxel: float = 0.03, pcd: bool = False
+) -> Drawing:
     """merged.ply (image colour, per-point robot index), trajectories of every frame and
     pose_graph.g2o; returns what the pictures need."""
     (out / "trajectories").mkdir(exist_ok=True)
@@ -423,12 +427,10 @@ def write_maps(out: Path, recs, kf_index, clouds, placed, edges, voxel: float = 
         d.positions[rid] = {round(f.stamp, 6): P[:3, 3] for f, P in zip(kfs, poses, strict=True)}
         _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, T, ref)
     if d.points:
-        write_ply(
-            out / "merged.ply",
-            np.concatenate(d.points),
-            np.concatenate(cols),
-            robot=np.concatenate(robot_idx),
-        )
+        pts, col, idx = np.concatenate(d.points), np.concatenate(cols), np.concatenate(robot_idx)
+        write_ply(out / "merged.ply", pts, col, robot=idx)
+        if pcd:
+            write_pcd(out / "merged.pcd", pts, col, idx)
     write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
     return d
 

@@ -177,6 +177,28 @@ def ply_bytes(
     return ("\n".join(header) + "\n").encode() + rows.tobytes()
 
 
+def write_pcd(path, points: np.ndarray, colors: np.ndarray, robot: np.ndarray) -> None:
+    """Binary PCD v0.7 (PCL's format): x y z float32, rgb packed as PCL does (0x00RRGGBB,
+    uint32), and the per-point `robot` index (uint16). Colours (N, 3) uint8 RGB."""
+    points = np.asarray(points)
+    rows = np.empty(
+        len(points),
+        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4"), ("robot", "<u2")],
+    )
+    for k, axis in enumerate("xyz"):
+        rows[axis] = points[:, k]
+    c = np.asarray(colors, np.uint32)
+    rows["rgb"] = (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
+    rows["robot"] = robot
+    n = len(points)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format (fleetmap)\nVERSION 0.7\n"
+        "FIELDS x y z rgb robot\nSIZE 4 4 4 4 2\nTYPE F F F U U\nCOUNT 1 1 1 1 1\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+    )
+    Path(path).write_bytes(header.encode() + rows.tobytes())
+
+
 def free_space_check(
     points: np.ndarray, views: Iterable, margin: float = 0.05, rel_margin: float = 0.02
 ) -> tuple[int, int]:

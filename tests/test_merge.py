@@ -25,7 +25,8 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fr1_pair"
 
 def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["merge", str(EXAMPLE / "alpha"), str(EXAMPLE / "bravo"), "--out", str(out)]) == 0
+    args = ["merge", str(EXAMPLE / "alpha"), str(EXAMPLE / "bravo"), "--out", str(out), "--pcd"]
+    assert main(args) == 0
     assert "merged 2 of 2 robots" in capsys.readouterr().out
     report = json.loads((out / "report.json").read_text())
     assert report["reference"] == "alpha" and report["unmerged"] == []
@@ -44,6 +45,10 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):
     rows = np.frombuffer(ply[ply.index(b"end_header") + 11 :], dtype=PLY_ROW, count=n)
     assert set(np.unique(rows["robot"])) == {0, 1}  # both robots, indexed in input order
     assert rows["red"].std() > 10  # image colour, not one colour per robot
+    import open3d as o3d  # PCL's format, as another tool reads it: the same points
+
+    pcd = o3d.io.read_point_cloud(str(out / "merged.pcd"))
+    np.testing.assert_allclose(np.asarray(pcd.points), np.c_[rows["x"], rows["y"], rows["z"]])
     g2o = (out / "pose_graph.g2o").read_text().splitlines()
     assert sum(line.startswith("VERTEX_SE3:QUAT") for line in g2o) == 2
     edge = next(line for line in g2o if line.startswith("EDGE_SE3:QUAT")).split()
