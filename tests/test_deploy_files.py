@@ -40,3 +40,18 @@ def test_dockerfile_commands_are_real_cli_commands():
         assert "torch==2.13.0" in text and f"EXPOSE {args.port}" in text
         for src in re.findall(r"^COPY (\S+)", text, re.M):
             assert (ROOT / src).exists(), src
+
+
+def test_deployment_conventions():
+    """Issue 14 item 7: ports bindable beyond loopback, a start period, a stop grace period
+    longer than the 30 s drain, no root, base image and torch source as build arguments."""
+    c = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+    for svc in c["services"].values():
+        assert svc["ports"][0].startswith("${FLEETMAP_BIND:-127.0.0.1}:")
+        assert svc["healthcheck"]["start_period"] == "30s"
+        assert int(svc["stop_grace_period"].rstrip("s")) > 30
+    for name in ("place_db", "aligner"):
+        text = (ROOT / "docker" / f"{name}.Dockerfile").read_text()
+        assert re.search(r"^USER fleetmap$", text, re.M)
+        assert "ARG BASE_IMAGE=" in text and "FROM ${BASE_IMAGE}" in text
+        assert "--index-url ${TORCH_INDEX}" in text
