@@ -344,8 +344,9 @@ def cmd_align(args: argparse.Namespace) -> int:
 
 def cmd_merge(args: argparse.Namespace) -> int:
     """The main job: N robot folders in, one global map and report out."""
-    from services.merge import _n_cascade, run_merge
+    from services.merge import run_merge
     from shared.errors import BadInput
+    from shared.pictures import n_cascade
 
     recs = _read_robots(args, args.robots)
     ids = [r.robot_id for r in recs]
@@ -370,8 +371,8 @@ def cmd_merge(args: argparse.Namespace) -> int:
     merged = [r for r in ids if r not in report["unmerged"]]
     print(
         f"merged {len(merged)} of {len(ids)} robots into {report['reference']}'s frame "
-        f"({_n_cascade(report)} verified overlaps, "
-        f"{len(report['overlaps']) - _n_cascade(report)} more co-visible once aligned, "
+        f"({n_cascade(report)} verified overlaps, "
+        f"{len(report['overlaps']) - n_cascade(report)} more co-visible once aligned, "
         f"{report['timing_s']['total']:.1f} s)"
     )
     if report["unmerged"]:

@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from shared import pictures
-from shared.client import AlignerClient, PlaceDBClient, ServiceError
+from shared.client import AlignerClient, PlaceDBClient
 from shared.dataset import Recording
 from shared.errors import Unavailable
 from shared.extract import keyframe_indices
@@ -41,7 +41,6 @@ log = logging.getLogger(__name__)
 
 #: report.json layout version (2: schema_version, transform_convention, parameters).
 REPORT_VERSION = 2
-_n_cascade = pictures.n_cascade  # the CLI's name for it
 
 
 def _free_port() -> int:
@@ -93,19 +92,14 @@ def embedded_process(kind: str, data_dir: Path | None = None):
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errors)
         client = PlaceDBClient(url)
         try:
-            end = time.monotonic() + 60
-            while True:
-                if proc.poll() is not None:
-                    errors.seek(0)
-                    tail = errors.read().decode(errors="replace").strip().splitlines()[-1:]
-                    raise Unavailable(f"embedded {kind} exited ({proc.returncode}): {tail}")
-                try:
-                    client.health(retry=False)
-                    break
-                except (Unavailable, ServiceError):
-                    if time.monotonic() > end:
-                        raise Unavailable(f"embedded {kind} not ready after 60 s") from None
-                    time.sleep(0.05)
+            try:
+                client.wait_ready(60, alive=lambda: proc.poll() is None, poll_s=0.05)
+            except Unavailable:
+                if proc.poll() is None:
+                    raise
+                errors.seek(0)
+                tail = errors.read().decode(errors="replace").strip().splitlines()[-1:]
+                raise Unavailable(f"embedded {kind} exited ({proc.returncode}): {tail}") from None
             yield url
         finally:
             client.close()

@@ -82,16 +82,20 @@ class _Client:
     def health(self, retry: bool = True) -> dict:
         return self._call("GET", "/healthz", retry=retry).json()
 
-    def wait_ready(self, timeout: float = 30.0) -> None:
+    def wait_ready(self, timeout: float = 30.0, alive=None, poll_s: float = 0.1) -> None:
+        """Until /healthz answers; Unavailable after `timeout`, or at once when `alive()`
+        (e.g. the service's process still running) turns false."""
         end = time.monotonic() + timeout
         while True:
+            if alive is not None and not alive():
+                raise Unavailable(f"{self.url} went away before it was ready")
             try:
                 self.health(retry=False)
                 return
             except (Unavailable, ServiceError):
                 if time.monotonic() > end:
                     raise Unavailable(f"{self.url} not ready after {timeout:.0f} s") from None
-                time.sleep(0.1)
+                time.sleep(poll_s)
 
     def close(self) -> None:
         self.http.close()

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.camera import Intrinsics, depth_to_points
+from shared.camera import Intrinsics
 from shared.dataset import Recording, load_depth, load_rgb
 from shared.frame import Frame
-from shared.geometry import apply
+from shared.mapcloud import view_points
 
 #: Every CLOUD_STRIDE-th pixel of a keyframe's depth goes into the map cloud.
 CLOUD_STRIDE = 4
@@ -72,14 +72,10 @@ def _init(vocab_path) -> None:
 def _extract(t: _Task) -> Keyframe:
     rgb, depth = load_rgb(t.rgb_path), load_depth(t.depth_path)
     frame = _extractor(t.robot_id, t.stamp, rgb, depth, t.intrinsics, t.T_map_cam)
-    p, uv = depth_to_points(depth, t.intrinsics, stride=CLOUD_STRIDE, max_depth=CLOUD_MAX_DEPTH_M)
-    points = apply(t.T_map_cam, p).astype(np.float32)
-    colours = (
-        rgb[uv[:, 1], uv[:, 0], ::-1]
-        if rgb.ndim == 3
-        else np.repeat(rgb[uv[:, 1], uv[:, 0], None], 3, axis=1)
+    points, colours = view_points(
+        rgb, depth, t.intrinsics, t.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M
     )
-    return Keyframe(t.robot_id, t.index, frame, points, np.ascontiguousarray(colours))
+    return Keyframe(t.robot_id, t.index, frame, points.astype(np.float32), colours)
 
 
 def _tasks(recs: list[Recording], kf_index: dict[str, list[int]]) -> list[_Task]:

@@ -34,12 +34,12 @@ ROBOT_COLOURS = np.array(
 class MapCloud:
     """One robot's map cloud from all its keyframes, as extracted (not yet voxelised).
 
-    points : ndarray of shape (N, 3) float32, robot's map frame (metres).
-    colours : ndarray of shape (N, 3) uint8, RGB.
+    points : ndarray of shape (N, 3) float32 or float64, robot's map frame (metres).
+    colours : ndarray of shape (N, 3) uint8, RGB, or None.
     """
 
     points: np.ndarray
-    colours: np.ndarray
+    colours: np.ndarray | None
 
     @classmethod
     def from_keyframes(cls, keyframes) -> MapCloud:
@@ -51,7 +51,8 @@ class MapCloud:
     def o3d(self, voxel: float, normals: bool = True) -> o3d.geometry.PointCloud:
         """Voxel down-sampled Open3D cloud with colours in 0..1 (and normals)."""
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points.astype(np.float64)))
-        pc.colors = o3d.utility.Vector3dVector(self.colours / 255.0)
+        if self.colours is not None:
+            pc.colors = o3d.utility.Vector3dVector(self.colours / 255.0)
         pc = pc.voxel_down_sample(voxel)
         if normals:
             pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
@@ -64,6 +65,22 @@ class MapCloud:
         return np.asarray(pc.points), cols
 
 
+def view_points(
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    intrinsics,
+    T_map_cam: np.ndarray,
+    stride: int = 4,
+    max_depth: float = 6.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One RGB-D view's share of its robot's map cloud: every `stride`-th pixel with depth
+    under `max_depth`, as points of shape (M, 3) float64 in the map frame and their colours
+    of shape (M, 3) uint8 RGB (grey repeated)."""
+    p, uv = depth_to_points(depth, intrinsics, stride=stride, max_depth=max_depth)
+    rgb = rgb if rgb.ndim == 3 else np.repeat(rgb[..., None], 3, axis=2)
+    return apply(T_map_cam, p), np.ascontiguousarray(rgb[uv[:, 1], uv[:, 0], ::-1])
+
+
 def views_cloud(
     views: Iterable,
     voxel: float = 0.03,
@@ -73,18 +90,10 @@ def views_cloud(
 ) -> o3d.geometry.PointCloud:
     """One robot's map cloud from its RGB-D views: back-projected, voxel down-sampled,
     with normals. Views need rgb, depth, intrinsics and T_map_cam."""
-    pts, cols = [], []
-    for v in views:
-        p, uv = depth_to_points(v.depth, v.intrinsics, stride=stride, max_depth=max_depth)
-        pts.append(apply(v.T_map_cam, p))
-        if with_color and v.rgb.ndim == 3:
-            cols.append(v.rgb[uv[:, 1], uv[:, 0], ::-1] / 255.0)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(pts)))
-    if cols:
-        pc.colors = o3d.utility.Vector3dVector(np.concatenate(cols))
-    pc = pc.voxel_down_sample(voxel)
-    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
-    return pc
+    cloud = ViewsCloud(views, stride, max_depth).raw
+    if not with_color:
+        cloud = MapCloud(cloud.points, None)
+    return cloud.o3d(voxel)
 
 
 class ViewsCloud:
@@ -93,13 +102,12 @@ class ViewsCloud:
     or four scales."""
 
     def __init__(self, views: Iterable, stride: int = 4, max_depth: float = 6.0):
-        pts, cols = [], []
-        for v in views:
-            p, uv = depth_to_points(v.depth, v.intrinsics, stride=stride, max_depth=max_depth)
-            pts.append(apply(v.T_map_cam, p))
-            rgb = v.rgb if v.rgb.ndim == 3 else np.repeat(v.rgb[..., None], 3, axis=2)
-            cols.append(rgb[uv[:, 1], uv[:, 0], ::-1])
-        self.raw = MapCloud(np.concatenate(pts), np.concatenate(cols))
+        parts = [
+            view_points(v.rgb, v.depth, v.intrinsics, v.T_map_cam, stride, max_depth) for v in views
+        ]
+        self.raw = MapCloud(
+            np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
+        )
         self._at: dict[float, o3d.geometry.PointCloud] = {}
 
     def at(self, voxel: float) -> o3d.geometry.PointCloud:

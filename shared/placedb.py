@@ -34,6 +34,7 @@ from shared.errors import (
     UnknownRobot,
 )
 from shared.frame import Frame, check_robot_id, decode
+from shared.geometry import check_transform
 from shared.retrieval import (
     DEFAULT_CASCADE,
     CascadeParams,
@@ -741,12 +742,7 @@ class PlaceDB:
         matching features) where the whole-map alignment succeeds; with it the overlap
         graph covers what the robots really share. Replaces the pair's earlier link.
         Returns the number of link overlaps recorded."""
-        T = np.asarray(T_a_b, np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise BadInput(f"A link needs a finite 4x4 transform, got shape {T.shape}")
-        R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
-            raise BadInput("A link's transform must be rigid (rotation and translation)")
+        T = check_transform(T_a_b, "A link's transform")
         if robot_a == robot_b:
             raise BadInput("A link joins two different robots")
         ra, rb = self._robot(robot_a, create=False), self._robot(robot_b, create=False)

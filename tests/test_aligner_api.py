@@ -24,6 +24,13 @@ def _request(pairs, **meta_kw):
     return align_request(pairs, **meta_kw)
 
 
+def _post_with_file(client, pairs, field: str, data: bytes):
+    """/align with one image file replaced by `data`."""
+    req = _request(pairs)
+    req["files"][field] = ("x.png", data)
+    return client.post("/align", **req)
+
+
 def test_align_returns_the_transform_and_a_merged_ply(client, tum_two_robots):  # noqa: F811
     pairs, T_a_b = tum_two_robots
     r = client.post("/align", **_request(pairs, cloud=True))
@@ -53,20 +60,16 @@ def test_bad_requests_answer_4xx(client, tum_two_robots):  # noqa: F811
     r = client.post("/align", **req)
     assert r.status_code == 422 and "b0_depth" in r.json()["detail"]
 
-    req = _request(pairs)
-    req["files"]["a0_rgb"] = ("x.png", b"not an image")
-    r = client.post("/align", **req)
+    r = _post_with_file(client, pairs, "a0_rgb", b"not an image")
     assert r.status_code == 422 and "not an image" in r.json()["detail"]
 
     a, b = pairs[0]
-    req = _request(pairs)
-    req["files"]["a0_depth"] = ("x.png", cv2.imencode(".png", a.depth[:100])[1].tobytes())
-    r = client.post("/align", **req)
+    r = _post_with_file(client, pairs, "a0_depth", cv2.imencode(".png", a.depth[:100])[1].tobytes())
     assert r.status_code == 422 and "does not match colour" in r.json()["detail"]
 
-    req = _request(pairs)
-    req["files"]["b0_depth"] = ("x.png", cv2.imencode(".png", np.zeros_like(b.depth))[1].tobytes())
-    assert "no valid reading" in client.post("/align", **req).json()["detail"]
+    empty_depth = cv2.imencode(".png", np.zeros_like(b.depth))[1].tobytes()
+    r = _post_with_file(client, pairs, "b0_depth", empty_depth)
+    assert "no valid reading" in r.json()["detail"]
 
     req = _request(pairs)
     req["data"]["meta"] = "{broken"
@@ -131,14 +134,10 @@ def _png_declaring(width: int, height: int) -> bytes:
 def test_hostile_align_requests_answer_4xx_before_spending_memory(client, tum_two_robots):  # noqa: F811
     """Issue 15's attacks on /align, each a 500 or a multi-GB allocation before."""
     pairs, _ = tum_two_robots
-    req = _request(pairs)
-    req["files"]["a0_rgb"] = ("x.png", _png_declaring(30000, 30000))
-    r = client.post("/align", **req)
+    r = _post_with_file(client, pairs, "a0_rgb", _png_declaring(30000, 30000))
     assert r.status_code == 413 and "a0_rgb" in r.json()["detail"]
 
-    req = _request(pairs)
-    req["files"]["b0_depth"] = ("x.png", b"")
-    r = client.post("/align", **req)
+    r = _post_with_file(client, pairs, "b0_depth", b"")
     assert r.status_code == 422 and "b0_depth: empty file" in r.json()["detail"]
 
     for meta in ("[" * 100_000 + "]" * 100_000, '{"pairs": ' + "9" * 5000 + "}"):

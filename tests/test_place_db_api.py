@@ -152,7 +152,8 @@ def test_links_validate_and_add_co_visible_pairs(client, frames, sun3d):
     T = np.loadtxt(sun3d / "T_a_b.txt")
     bad = [
         ({"transform": [[1, 0], [0, 1]]}, 422, "4x4"),
-        ({"transform": (2 * np.eye(4)).tolist()}, 422, "rigid"),
+        ({"transform": (2 * np.eye(4)).tolist()}, 422, "bottom row"),
+        ({"transform": np.diag([2.0, 2.0, 2.0, 1.0]).tolist()}, 422, "rigid"),
         ({"transform": [[float("nan")] * 4] * 4}, 422, "finite"),
     ]
     for body, status, msg in bad:
