@@ -180,3 +180,37 @@ def fleet_frames(vocabulary):
         f"r{k}": [encode(x(f"r{k}", 100.0 + i, textured_image(1000 * k + i))) for i in range(25)]
         for k in range(8)
     }
+
+
+def random_frame(seed: int) -> np.ndarray:
+    """A random rigid 4x4 transform, translation within 10 m."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+    T[:3, 3] = rng.uniform(-10, 10, 3)
+    return T
+
+
+@pytest.fixture
+def tum_two_robots(tum_pairs):
+    """TUM fr1 frames 60 ms apart as robots A and B; B's map frame is a random one."""
+    from shared.camera import TUM_FR1
+    from shared.correspondences import RGBDView
+
+    case = tum_pairs / "case_1"
+    T_b_w = random_frame(3)
+    a = RGBDView(
+        imread(case / "img_prev.png"),
+        imread(case / "dep_prev.png"),
+        TUM_FR1,
+        read_tum_pose(case / "pose_prev.txt"),
+    )
+    b = RGBDView(
+        imread(case / "img_curr.png"),
+        imread(case / "dep_curr.png"),
+        TUM_FR1,
+        T_b_w @ read_tum_pose(case / "pose_curr.txt"),
+    )
+    return [(a, b)], np.linalg.inv(T_b_w)  # T_a_b: A's map is the mocap world

@@ -20,7 +20,7 @@ PLY_ROW = np.dtype(
         ("robot", "<u2"),
     ]
 )
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fr1_pair"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "fr1_pair"
 
 
 def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from shared.align import AlignParams, align_views
 from shared.camera import TUM_FR1
@@ -12,34 +11,6 @@ from shared.errors import BadInput
 from shared.extract import keyframe_indices
 from shared.geometry import transform_error
 from tests.conftest import imread, read_tum_pose
-
-
-def random_frame(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
-    T[:3, 3] = rng.uniform(-10, 10, 3)
-    return T
-
-
-@pytest.fixture
-def tum_two_robots(tum_pairs):
-    """TUM fr1 frames 60 ms apart as robots A and B; B's map frame is a random one."""
-    case = tum_pairs / "case_1"
-    T_b_w = random_frame(3)
-    a = RGBDView(
-        imread(case / "img_prev.png"),
-        imread(case / "dep_prev.png"),
-        TUM_FR1,
-        read_tum_pose(case / "pose_prev.txt"),
-    )
-    b = RGBDView(
-        imread(case / "img_curr.png"),
-        imread(case / "dep_curr.png"),
-        TUM_FR1,
-        T_b_w @ read_tum_pose(case / "pose_curr.txt"),
-    )
-    return [(a, b)], np.linalg.inv(T_b_w)  # T_a_b: A's map is the mocap world
 
 
 def test_recovers_a_known_transform_from_a_real_rgbd_pair(tum_two_robots):

@@ -14,7 +14,6 @@ import numpy as np
 
 from shared.client import align_request
 from tests.servers import Service
-from tests.test_align import tum_two_robots  # noqa: F401  (fixture)
 
 OCTET = {"content-type": "application/octet-stream"}
 

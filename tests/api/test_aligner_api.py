@@ -11,7 +11,6 @@ from services.aligner.config import Settings
 from services.aligner.main import create_app
 from shared.client import align_request
 from shared.geometry import transform_error
-from tests.test_align import tum_two_robots  # noqa: F401  (fixture)
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from services.place_db.config import Settings
 from services.place_db.main import create_app
 from shared.frame import decode
-from tests.test_place_db_api import OCTET, _post, frames  # noqa: F401  (fixture)
+from tests.api.test_place_db_api import OCTET, _post, frames  # noqa: F401  (fixture)
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ from services.aligner.main import create_app as create_aligner
 from services.place_db.config import Settings
 from services.place_db.main import create_app
 from shared.frame import decode, encode
-from tests.test_frame import _mk
+from tests.unit.test_frame import _mk
 
 OCTET = {"content-type": "application/octet-stream"}
 OP, TOK_A, TOK_B = "op-secret-123", "robot-a-secret", "robot-b-secret"

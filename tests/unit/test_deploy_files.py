@@ -9,7 +9,7 @@ import yaml
 from services.cli import build_parser
 from services.place_db.config import Settings as PlaceSettings
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_compose_structure():
