@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from shared.align import select_model
-from shared.estimators import MLPEstimator, fit_affine
-from shared.registration import kabsch
+from fleetmap.align import select_model
+from fleetmap.estimators import MLPEstimator, fit_affine
+from fleetmap.registration import kabsch
 
 ROOT = Path(__file__).resolve().parents[1]
 PLY = ROOT.parent / "shared/data/laurana/Laurana50k.ply"

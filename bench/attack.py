@@ -25,9 +25,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from shared.camera import Intrinsics  # noqa: E402
-from shared.client import align_request  # noqa: E402
-from shared.correspondences import RGBDView  # noqa: E402
+from fleetmap.camera import Intrinsics  # noqa: E402
+from fleetmap.client import align_request  # noqa: E402
+from fleetmap.correspondences import RGBDView  # noqa: E402
 from tests.servers import Service  # noqa: E402
 from tests.test_aligner_api import _png_declaring  # noqa: E402
 

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.dataset import load_depth, load_rgb, read_recording
-from shared.extract import FrameExtractor
-from shared.features import detect_and_describe
-from shared.frame import encode
-from shared.gist import compute_gist
-from shared.vocabulary import load_vocabulary
+from fleetmap.dataset import load_depth, load_rgb, read_recording
+from fleetmap.extract import FrameExtractor
+from fleetmap.features import detect_and_describe
+from fleetmap.frame import encode
+from fleetmap.gist import compute_gist
+from fleetmap.vocabulary import load_vocabulary
 
 
 def _ms(fn, *args) -> tuple[float, object]:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.cli import main as cli
-from shared.geometry import transform_error
+from fleetmap.geometry import transform_error
+from fleetmap.services.cli import main as cli
 
 
 def main() -> None:

@@ -21,10 +21,10 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from shared.dataset import read_recording  # noqa: E402
-from shared.extract import keyframe_indices  # noqa: E402
-from shared.extract_pool import extract_keyframes  # noqa: E402
-from shared.frame import encode  # noqa: E402
+from fleetmap.dataset import read_recording  # noqa: E402
+from fleetmap.extract import keyframe_indices  # noqa: E402
+from fleetmap.extract_pool import extract_keyframes  # noqa: E402
+from fleetmap.frame import encode  # noqa: E402
 from tests.servers import Service  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "hololens_lounge"

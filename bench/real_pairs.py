@@ -37,12 +37,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from shared.align import fpfh_ransac_icp  # noqa: E402
-from shared.dataset import read_recording  # noqa: E402
-from shared.geometry import apply, pose_to_tum, transform_error  # noqa: E402
-from shared.lazy import LazyModule  # noqa: E402
-from shared.mapcloud import views_cloud  # noqa: E402
-from shared.pairs import load_view  # noqa: E402
+from fleetmap.align import fpfh_ransac_icp  # noqa: E402
+from fleetmap.dataset import read_recording  # noqa: E402
+from fleetmap.geometry import apply, pose_to_tum, transform_error  # noqa: E402
+from fleetmap.lazy import LazyModule  # noqa: E402
+from fleetmap.mapcloud import views_cloud  # noqa: E402
+from fleetmap.pairs import load_view  # noqa: E402
 
 o3d = LazyModule("open3d")
 

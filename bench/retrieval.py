@@ -27,12 +27,12 @@ import httpx
 import numpy as np
 from tqdm import tqdm
 
-from shared.dataset import read_recording
-from shared.extract import FrameExtractor, extract_recording
-from shared.frame import Frame, encode
-from shared.placedb import PlaceDB, RetrainPolicy
-from shared.retrieval import DEFAULT_CASCADE, Filter, local_stage
-from shared.vocabulary import load_vocabulary
+from fleetmap.dataset import read_recording
+from fleetmap.extract import FrameExtractor, extract_recording
+from fleetmap.frame import Frame, encode
+from fleetmap.place import DEFAULT_CASCADE, Filter, PlaceDB, RetrainPolicy
+from fleetmap.place.cascade import local_stage
+from fleetmap.vocabulary import load_vocabulary
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -106,8 +106,8 @@ class Synth:
 
 def evaluate(db: PlaceDB, cor, sun, gt) -> dict:
     """Cascade and brute force on the real queries; latency, recall, stage fractions."""
-    cor_id = db._robot_ids["corridor"]
-    a_id = db._robot_ids["robot_a"]
+    cor_id = db.store.robot_code("corridor")
+    a_id = db.store.robot_code("robot_a")
     queries = [
         (cor[q - 1], Filter(robots={cor_id}, max_stamp=q - 5.5), gt.get(q)) for q in range(41, 85)
     ] + [(f, Filter(robots={a_id}), None) for f in sun["robot_b"]]

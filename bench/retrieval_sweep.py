@@ -19,9 +19,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from retrieval import evaluate, real_frames  # noqa: E402
 
-from shared.placedb import PlaceDB, RetrainPolicy  # noqa: E402
-from shared.retrieval import DEFAULT_CASCADE  # noqa: E402
-from shared.vocabulary import load_vocabulary  # noqa: E402
+from fleetmap.place import (  # noqa: E402
+    DEFAULT_CASCADE,  # noqa: E402
+    PlaceDB,
+    RetrainPolicy,
+)
+from fleetmap.vocabulary import load_vocabulary  # noqa: E402
 
 
 def main() -> None:

@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.align import AlignParams, align_views, baseline, fpfh_ransac_icp
-from shared.correspondences import RGBDView
-from shared.dataset import load_depth, load_rgb, read_recording
-from shared.extract import keyframe_indices
-from shared.geometry import apply, transform_error
-from shared.mapcloud import views_cloud
+from fleetmap.align import AlignParams, align_views, baseline, fpfh_ransac_icp
+from fleetmap.correspondences import RGBDView
+from fleetmap.dataset import load_depth, load_rgb, read_recording
+from fleetmap.extract import keyframe_indices
+from fleetmap.geometry import apply, transform_error
+from fleetmap.mapcloud import views_cloud
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "sun3d_studyroom"
 

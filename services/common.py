@@ -16,47 +16,22 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPBearer
 from pydantic import AfterValidator, BaseModel, Field
 
-from shared.errors import (
-    BadFrame,
+from fleetmap.errors import (
     BadInput,
-    BadRobotData,
-    BadVocabulary,
-    Conflict,
     FleetmapError,
     Forbidden,
-    NotEnoughCorrespondences,
     PayloadTooLarge,
     RequestTimeout,
-    StorageCorrupt,
     Unauthorized,
     Unavailable,
-    UnknownKeyframe,
-    UnknownRobot,
     UnsupportedEncoding,
 )
+from fleetmap.wire import error_body, status_of
 
 log = logging.getLogger("fleetmap.http")
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,64}")
 #: Longest wait for the next piece of a request body (a client that stalls is cut off).
 BODY_CHUNK_TIMEOUT_S = 30.0
-
-STATUS = [
-    (Unauthorized, 401),
-    (Forbidden, 403),
-    (UnsupportedEncoding, 415),
-    (PayloadTooLarge, 413),
-    (RequestTimeout, 408),
-    (BadFrame, 400),
-    (UnknownRobot, 404),
-    (UnknownKeyframe, 404),
-    (Conflict, 409),
-    (NotEnoughCorrespondences, 422),
-    (BadInput, 422),
-    (BadRobotData, 422),
-    (BadVocabulary, 500),
-    (Unavailable, 503),
-    (StorageCorrupt, 500),
-]
 
 
 def _four_by_four(v: list[list[float]]) -> list[list[float]]:
@@ -69,13 +44,6 @@ Matrix4 = Annotated[list[list[float]], AfterValidator(_four_by_four)]
 """A 4x4 matrix in a JSON body, rows of numbers (pose or rigid transform)."""
 
 
-def status_of(exc: FleetmapError) -> int:
-    for cls, code in STATUS:
-        if isinstance(exc, cls):
-            return code
-    return 400
-
-
 def install(app: FastAPI) -> None:
     """One exception handler for every domain error, and a request-id middleware."""
 
@@ -86,7 +54,7 @@ def install(app: FastAPI) -> None:
             headers["retry-after"] = str(max(1, round(exc.retry_after)))
         return JSONResponse(
             status_code=status_of(exc),
-            content={"detail": str(exc), "error": type(exc).__name__},
+            content=error_body(exc),
             headers=headers,
         )
 

@@ -23,8 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.errors import BadRobotData
-from shared.geometry import pose_to_tum
+from fleetmap.errors import BadRobotData
+from fleetmap.geometry import pose_to_tum
 
 IMAGE = "sensor_msgs/msg/Image"
 INFO = "sensor_msgs/msg/CameraInfo"
@@ -150,7 +150,7 @@ def _image(msg, depth: bool) -> np.ndarray:
 
 
 def _pose(msg) -> np.ndarray:
-    from shared.geometry import pose_from_tum
+    from fleetmap.geometry import pose_from_tum
 
     p = msg.pose.pose if hasattr(msg, "twist") else msg.pose  # Odometry or PoseStamped
     t = np.array([p.position.x, p.position.y, p.position.z])

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.errors import BadInput, BadRobotData
+from fleetmap.errors import BadInput, BadRobotData
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,15 @@ class Intrinsics:
     def K(self) -> np.ndarray:
         """3x3 camera matrix."""
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (u, v) of camera-frame points, ndarray of shape (N, 2); points
+        must lie in front of the camera (z > 0)."""
+        z = points_cam[:, 2]
+        return np.stack(
+            [self.fx * points_cam[:, 0] / z + self.cx, self.fy * points_cam[:, 1] / z + self.cy],
+            1,
+        )
 
     def to_dict(self) -> dict:
         return asdict(self)

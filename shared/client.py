@@ -6,47 +6,21 @@ import time
 
 import httpx
 
-from shared.errors import (
-    BadInput,
-    Conflict,
-    FleetmapError,
-    Forbidden,
-    Unauthorized,
-    Unavailable,
-    UnknownRobot,
-)
-from shared.frame import Frame, encode
+from fleetmap.errors import BadInput, Unavailable
+from fleetmap.frame import Frame, encode
+from fleetmap.wire import ALIGN_META, ServiceError, error_from, view_part
 
 OCTET = {"content-type": "application/octet-stream"}
-
-
-class ServiceError(FleetmapError):
-    """A service answered with an error status."""
-
-    def __init__(self, status: int, detail: str):
-        super().__init__(f"HTTP {status}: {detail}")
-        self.status = status
 
 
 def _raise_for(resp: httpx.Response) -> httpx.Response:
     if resp.status_code < 400:
         return resp
     try:
-        detail = resp.json().get("detail", resp.text)
+        body = resp.json()
     except ValueError:
-        detail = resp.text
-    detail = detail if isinstance(detail, str) else str(detail)
-    if resp.status_code == 404 and "robot" in detail.lower():
-        raise UnknownRobot(detail)
-    if resp.status_code == 409:
-        raise Conflict(detail)
-    if resp.status_code == 401:
-        raise Unauthorized(f"{resp.request.url.path}: {detail}")
-    if resp.status_code == 403:
-        raise Forbidden(f"{resp.request.url.path}: {detail}")
-    if resp.status_code in (400, 413, 422):
-        raise BadInput(f"{resp.request.url.path}: {detail}")
-    raise ServiceError(resp.status_code, detail)
+        body = resp.text
+    raise error_from(resp.status_code, body, resp.request.url.path)
 
 
 class _Client:
@@ -193,11 +167,12 @@ def align_request(pairs, **options) -> dict:
                         "intrinsics": v.intrinsics.to_dict(),
                     }
                 )
-                files[f"{side}{i}_rgb"] = (f"{side}{i}_rgb.png", _png(v.rgb), "image/png")
-                files[f"{side}{i}_depth"] = (f"{side}{i}_depth.png", _png(v.depth), "image/png")
+                for kind, img in (("rgb", v.rgb), ("depth", v.depth)):
+                    name = view_part(side, i, kind)
+                    files[name] = (f"{name}.png", _png(img), "image/png")
             ij.append(seen[id(v)])
         meta["pairs"].append(ij)
-    return {"data": {"meta": json.dumps(meta)}, "files": files}
+    return {"data": {ALIGN_META: json.dumps(meta)}, "files": files}
 
 
 class AlignerClient(_Client):

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.camera import Intrinsics, backproject_pixels
-from shared.errors import BadInput
-from shared.features import FeatureParams, LocalFeatures, detect_and_describe
-from shared.geometry import apply, check_transform
-from shared.matching import MatchParams, match_descriptors_at, verify_pair
+from fleetmap.camera import Intrinsics, backproject_pixels
+from fleetmap.errors import BadInput
+from fleetmap.features import FeatureParams, LocalFeatures, detect_and_describe
+from fleetmap.geometry import apply, check_transform
+from fleetmap.matching import MatchParams, match_descriptors_at, verify_pair
 
 ALIGN_FEATURES = FeatureParams(max_features=1000, min_mser_features=400)
 ALIGN_MATCH = MatchParams(ratio=0.85, min_inliers=8, min_inlier_ratio=0.0)
@@ -136,7 +136,7 @@ def verified_and_raw(
 
     Across wide baselines (robots 60-90 degrees apart) the epipolar RANSAC keeps too few
     right matches; a rigid RANSAC in 3D on the raw matches, judged by geometry, does
-    better (see `shared.align`)."""
+    better (see `fleetmap.align`)."""
     verified, raw = [], []
     for i, (a, b) in enumerate(pairs):
         fa, fb = feats[id(a)], feats[id(b)]

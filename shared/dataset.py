@@ -9,9 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.camera import TUM_FR1, Intrinsics
-from shared.errors import BadRobotData
-from shared.geometry import pose_from_tum
+from fleetmap.camera import TUM_FR1, Intrinsics
+from fleetmap.errors import BadRobotData
+from fleetmap.geometry import pose_from_tum
 
 log = logging.getLogger(__name__)
 
@@ -122,10 +122,10 @@ def read_recording(
     Colour frames are kept only where a depth frame (and a pose, if `groundtruth.txt`
     exists) lies within `MAX_ASSOCIATION_GAP_S`. Intrinsics come from `intrinsics`, else
     `camera.json`, else the TUM fr1 defaults. `root` may also be a ROS bag
-    (`shared.bags`; `topics`: a `BagTopics` where message types are ambiguous).
+    (`fleetmap.bags`; `topics`: a `BagTopics` where message types are ambiguous).
     """
     root = Path(root)
-    from shared.bags import BagTopics, cached_tum, is_bag
+    from fleetmap.bags import BagTopics, cached_tum, is_bag
 
     if is_bag(root):  # a ROS bag: read as the TUM folder it converts to (cached)
         robot_id = robot_id or root.resolve().stem

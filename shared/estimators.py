@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from shared.errors import BadInput, NotEnoughCorrespondences
-from shared.lazy import LazyModule
-from shared.registration import kabsch
+from fleetmap.errors import BadInput, NotEnoughCorrespondences
+from fleetmap.lazy import LazyModule
+from fleetmap.registration import kabsch
 
 torch = LazyModule("torch")  # only the MLP needs it
 

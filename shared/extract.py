@@ -8,16 +8,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.camera import Intrinsics, backproject_pixels
-from shared.dataset import Recording, load_depth, load_rgb
-from shared.errors import BadInput
-from shared.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
-from shared.features import FeatureParams, detect_and_describe
-from shared.frame import Frame
-from shared.geometry import apply
-from shared.gist import compute_gist
-from shared.keyframes import KeyframePolicy, select_keyframes
-from shared.vocabulary import Vocabulary
+from fleetmap.camera import Intrinsics, backproject_pixels
+from fleetmap.dataset import Recording, load_depth, load_rgb
+from fleetmap.errors import BadInput
+from fleetmap.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
+from fleetmap.features import FeatureParams, detect_and_describe
+from fleetmap.frame import Frame
+from fleetmap.geometry import apply
+from fleetmap.gist import compute_gist
+from fleetmap.keyframes import KeyframePolicy, select_keyframes
+from fleetmap.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
 

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.camera import Intrinsics
-from shared.dataset import Recording, load_depth, load_rgb
-from shared.frame import Frame
-from shared.mapcloud import view_points
+from fleetmap.camera import Intrinsics
+from fleetmap.dataset import Recording, load_depth, load_rgb
+from fleetmap.frame import Frame
+from fleetmap.mapcloud import view_points
 
 #: Every CLOUD_STRIDE-th pixel of a keyframe's depth goes into the map cloud.
 CLOUD_STRIDE = 4
@@ -61,8 +61,8 @@ class _Task:
 def _init(vocab_path) -> None:
     import cv2
 
-    from shared.extract import FrameExtractor
-    from shared.vocabulary import load_vocabulary
+    from fleetmap.extract import FrameExtractor
+    from fleetmap.vocabulary import load_vocabulary
 
     cv2.setNumThreads(1)  # one process per core already
     global _extractor
@@ -128,7 +128,7 @@ def extract_keyframes(
         _init(vocab_path)
         return (_extract(t) for t in tasks)
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["shared.extract", "shared.extract_pool"])
+    ctx.set_forkserver_preload(["fleetmap.extract", "fleetmap.extract_pool"])
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(vocab_path,))
     with _main_hidden():  # workers start here, on submission
         results = pool.map(_extract, tasks, chunksize=2)  # every task submitted now

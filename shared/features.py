@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from shared.errors import BadInput
+from fleetmap.errors import BadInput
 
 SIFT_SIGMA = 1.6
 SIFT_LAYERS = 3

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.camera import Intrinsics
-from shared.errors import BadFrame, BadInput
-from shared.geometry import check_transform
+from fleetmap.camera import Intrinsics
+from fleetmap.errors import BadFrame, BadInput
+from fleetmap.geometry import check_transform
 
 MAGIC = b"FMFS"
 VERSION = 1

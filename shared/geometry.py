@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from shared.errors import BadInput
+from fleetmap.errors import BadInput
 
 #: Largest translation accepted in a pose (metres) and orthonormality tolerance.
 MAX_TRANSLATION_M = 1e6

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 
-from shared.errors import BadInput
+from fleetmap.errors import BadInput
 
 
 @dataclass(frozen=True)

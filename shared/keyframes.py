@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.geometry import invert, rotation_angle_deg
+from fleetmap.geometry import invert, rotation_angle_deg
 
 
 @dataclass(frozen=True)

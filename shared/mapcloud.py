@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.camera import depth_to_points
-from shared.geometry import apply
-from shared.lazy import LazyModule
+from fleetmap.camera import depth_to_points
+from fleetmap.geometry import apply
+from fleetmap.lazy import LazyModule
 
 o3d = LazyModule("open3d")
 
@@ -228,9 +228,8 @@ def free_space_check(
         p = pts @ T[:3, :3].T + T[:3, 3]
         z = p[:, 2]
         front = z > 0.1
-        zs = np.where(front, z, 1.0)
-        u = np.round(K.fx * p[:, 0] / zs + K.cx).astype(np.int64)
-        w = np.round(K.fy * p[:, 1] / zs + K.cy).astype(np.int64)
+        uv = np.round(K.project(np.where(front[:, None], p, 1.0))).astype(np.int64)
+        u, w = uv[:, 0], uv[:, 1]
         h, wd = v.depth.shape
         ok = front & (u >= 0) & (u < wd) & (w >= 0) & (w < h)
         d = np.zeros(len(p))

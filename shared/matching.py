@@ -131,7 +131,7 @@ def verify_pair(
 
 def _rigid_support(ia, ib, points_a, points_b, tol: float) -> int:
     """How many matched features with depth on both sides fit one rigid motion."""
-    from shared.registration import ransac_rigid
+    from fleetmap.registration import ransac_rigid
 
     (pa, va), (pb, vb) = points_a, points_b
     both = va[ia] & vb[ib]

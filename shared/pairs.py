@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.correspondences import RGBDView
-from shared.dataset import FrameRecord, Recording, load_depth, load_rgb
-from shared.errors import BadRobotData
+from fleetmap.correspondences import RGBDView
+from fleetmap.dataset import FrameRecord, Recording, load_depth, load_rgb
+from fleetmap.errors import BadRobotData
 
 
 def frame_at(rec: Recording, stamp: float, tol: float = 1e-3) -> int:
@@ -74,3 +74,18 @@ def load_view(rec: Recording, i: int) -> RGBDView:
     return RGBDView(
         load_rgb(f.rgb_path), load_depth(f.depth_path), rec.intrinsics, f.T_map_cam, f.stamp
     )
+
+
+def pair_views(
+    overlaps: list[dict],
+    rec_a: Recording,
+    rec_b: Recording,
+    keyframes_a: list[int] | None,
+    keyframes_b: list[int] | None,
+    max_views: int,
+) -> list[tuple[RGBDView, RGBDView]]:
+    """The RGB-D pairs to send the aligner for two robots: every selected view of A with
+    every selected view of B (`select_views`); [] without a verified overlap."""
+    ia, ib = select_views(overlaps, rec_a, rec_b, keyframes_a, keyframes_b, max_views)
+    va, vb = [load_view(rec_a, i) for i in ia], [load_view(rec_b, j) for j in ib]
+    return [(x, y) for x in va for y in vb]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.errors import BadInput, NotEnoughCorrespondences
+from fleetmap.errors import BadInput, NotEnoughCorrespondences
 
 
 def kabsch(

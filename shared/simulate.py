@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from shared.camera import Intrinsics
-from shared.geometry import pose_to_tum
+from fleetmap.camera import Intrinsics
+from fleetmap.geometry import pose_to_tum
 
 
 def texture(rng: np.random.Generator, size: int = 256, shapes: int = 60) -> np.ndarray:

@@ -9,12 +9,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.errors import BadInput, BadRobotData
-from shared.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
-from shared.features import FeatureParams, detect_and_describe
-from shared.gist import DEFAULT_PARAMS as GIST_DEFAULTS
-from shared.gist import GistParams, compute_gist
-from shared.vocabulary import Vocabulary, train_vocabulary
+from fleetmap.errors import BadInput, BadRobotData
+from fleetmap.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
+from fleetmap.features import FeatureParams, detect_and_describe
+from fleetmap.gist import DEFAULT_PARAMS as GIST_DEFAULTS
+from fleetmap.gist import GistParams, compute_gist
+from fleetmap.vocabulary import Vocabulary, train_vocabulary
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff"}
@@ -31,7 +31,7 @@ def collect_images(inputs: Iterable[str | Path], stride: int = 1) -> list[Path]:
         if item.is_file():
             out.append(item)
         elif (item / "rgb.txt").is_file():
-            from shared.dataset import read_list
+            from fleetmap.dataset import read_list
 
             names = [item / v[0] for _, v in read_list(item / "rgb.txt") if v]
             out += names[::stride]

@@ -17,8 +17,8 @@ from pathlib import Path
 import faiss
 import numpy as np
 
-from shared.errors import BadInput, BadVocabulary
-from shared.gist import GistParams
+from fleetmap.errors import BadInput, BadVocabulary
+from fleetmap.gist import GistParams
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +142,7 @@ class Vocabulary:
 
 def default_vocabulary_path() -> Path:
     """The vocabulary shipped with the package (trained on BSD/CC-BY images)."""
-    return Path(str(resources.files("shared") / "assets" / DEFAULT_VOCABULARY))
+    return Path(str(resources.files("fleetmap") / "assets" / DEFAULT_VOCABULARY))
 
 
 def load_vocabulary(path: str | Path | None = None) -> Vocabulary:

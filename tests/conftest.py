@@ -44,13 +44,13 @@ def tum_pairs() -> Path:
 
 @pytest.fixture(scope="session")
 def vocabulary():
-    from shared.vocabulary import load_vocabulary
+    from fleetmap.vocabulary import load_vocabulary
 
     return load_vocabulary()
 
 
 def read_tum_pose(path: Path) -> np.ndarray:
-    from shared.geometry import pose_from_tum
+    from fleetmap.geometry import pose_from_tum
 
     v = np.array(path.read_text().split(), dtype=float)
     return pose_from_tum(v[:3], v[3:7])
@@ -88,7 +88,7 @@ def write_robot(
     root: Path, frames: list[tuple[float, Path, Path, np.ndarray]], camera: dict | None = None
 ) -> Path:
     """A robot folder in the TUM layout from (stamp, rgb file, depth file, T_map_cam)."""
-    from shared.geometry import pose_to_tum
+    from fleetmap.geometry import pose_to_tum
 
     (root / "rgb").mkdir(parents=True)
     (root / "depth").mkdir()
@@ -172,8 +172,8 @@ def textured_image(seed: int, h: int = 240, w: int = 320) -> np.ndarray:
 @pytest.fixture(scope="session")
 def fleet_frames(vocabulary):
     """8 robots x 25 encoded frames of distinct textured views: {robot: [bytes]}."""
-    from shared.extract import FrameExtractor
-    from shared.frame import encode
+    from fleetmap.extract import FrameExtractor
+    from fleetmap.frame import encode
 
     x = FrameExtractor(vocabulary)
     return {
@@ -196,8 +196,8 @@ def random_frame(seed: int) -> np.ndarray:
 @pytest.fixture
 def tum_two_robots(tum_pairs):
     """TUM fr1 frames 60 ms apart as robots A and B; B's map frame is a random one."""
-    from shared.camera import TUM_FR1
-    from shared.correspondences import RGBDView
+    from fleetmap.camera import TUM_FR1
+    from fleetmap.correspondences import RGBDView
 
     case = tum_pairs / "case_1"
     T_b_w = random_frame(3)

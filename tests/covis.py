@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.camera import Intrinsics, depth_to_points
-from shared.dataset import FrameRecord, load_depth
-from shared.geometry import apply, invert
+from fleetmap.camera import Intrinsics, depth_to_points
+from fleetmap.dataset import FrameRecord, load_depth
+from fleetmap.geometry import apply, invert
 
 
 def covisibility(

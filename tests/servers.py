@@ -34,7 +34,7 @@ class Service:
         cmd = [
             sys.executable,
             "-m",
-            "services.cli",
+            "fleetmap.services.cli",
             "-v",
             "serve",
             self.kind,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pydantic import SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from shared.align import AlignParams
+from fleetmap.align import AlignParams
 
 _P = AlignParams()
 

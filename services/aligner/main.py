@@ -8,9 +8,9 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services import common
-from services.aligner.config import Settings
-from services.aligner.routes import router
+from fleetmap.services import common
+from fleetmap.services.aligner.config import Settings
+from fleetmap.services.aligner.routes import router
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -14,12 +14,13 @@ from PIL import Image
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from services.aligner import schemas as s
-from services.common import ERROR_RESPONSES, any_token, read_body
-from shared.align import align_request
-from shared.camera import Intrinsics
-from shared.correspondences import RGBDView
-from shared.errors import BadInput, PayloadTooLarge, UnknownKeyframe
+from fleetmap.align import align_request
+from fleetmap.camera import Intrinsics
+from fleetmap.correspondences import RGBDView
+from fleetmap.errors import BadInput, PayloadTooLarge, UnknownKeyframe
+from fleetmap.services.aligner import schemas as s
+from fleetmap.services.common import ERROR_RESPONSES, any_token, read_body
+from fleetmap.wire import ALIGN_META, view_part
 
 router = APIRouter(responses=ERROR_RESPONSES)
 FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
@@ -57,8 +58,12 @@ def _decode(data: bytes, name: str, depth: bool) -> np.ndarray:
 
 
 def _view(files: dict[str, bytes], name: str, vm: s.ViewMeta) -> RGBDView:
-    rgb = _decode(files[f"{name}_rgb"], f"{name}_rgb", False)
-    depth = _decode(files[f"{name}_depth"], f"{name}_depth", True)
+    rgb_part, depth_part = (
+        view_part(name[0], int(name[1:]), "rgb"),
+        view_part(name[0], int(name[1:]), "depth"),
+    )
+    rgb = _decode(files[rgb_part], rgb_part, False)
+    depth = _decode(files[depth_part], depth_part, True)
     try:
         return RGBDView(
             rgb, depth, Intrinsics(**vm.intrinsics.model_dump()), np.array(vm.T_map_cam), vm.stamp
@@ -126,9 +131,9 @@ ALIGN_BODY = {
             "multipart/form-data": {
                 "schema": {
                     "type": "object",
-                    "required": ["meta"],
+                    "required": [ALIGN_META],
                     "properties": {
-                        "meta": {"type": "string", "description": "AlignMeta as JSON"},
+                        ALIGN_META: {"type": "string", "description": "AlignMeta as JSON"},
                         "a0_rgb": {"type": "string", "format": "binary"},
                         "a0_depth": {"type": "string", "format": "binary"},
                         "b0_rgb": {"type": "string", "format": "binary"},
@@ -136,7 +141,7 @@ ALIGN_BODY = {
                     },
                     "additionalProperties": {"type": "string", "format": "binary"},
                 },
-                "encoding": {"meta": {"contentType": "application/json"}},
+                "encoding": {ALIGN_META: {"contentType": "application/json"}},
             }
         },
     }
@@ -158,7 +163,7 @@ async def align(request: Request) -> s.AlignAnswer:
         # chunked or not, cut off at the limit
         await read_body(request, st.max_body_bytes, FORM_TYPES)
         form = await request.form(max_files=4 * st.max_views, max_fields=8)
-        meta = _parse_meta(form.get("meta"))
+        meta = _parse_meta(form.get(ALIGN_META))
         if len(meta.pairs) > st.max_pairs:
             raise BadInput(f"At most {st.max_pairs} pairs, got {len(meta.pairs)}")
         n_views = max(len(meta.views_a), len(meta.views_b)) or len(meta.pairs)

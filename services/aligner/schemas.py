@@ -18,7 +18,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from services.common import Matrix4
+from fleetmap.align.types import METHODS
+from fleetmap.services.common import Matrix4
 
 
 class IntrinsicsIn(BaseModel):
@@ -46,7 +47,7 @@ class AlignMeta(BaseModel):
     pairs: list[PairMeta] | list[tuple[int, int]] = Field(min_length=1)
     views_a: list[ViewMeta] = []
     views_b: list[ViewMeta] = []
-    method: Literal["default", "rigid", "similarity", "affine", "mlp", "icp", "fpfh"] = "default"
+    method: Literal[tuple(METHODS)] = "default"  # type: ignore[valid-type]  (the registry)
     cloud: bool = False
     colour: Literal["robot", "image"] = "robot"
 

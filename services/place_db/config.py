@@ -8,8 +8,8 @@ from pathlib import Path
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from shared.frame import MAX_FRAME_BYTES
-from shared.retrieval import DEFAULT_CASCADE as _C
+from fleetmap.frame import MAX_FRAME_BYTES
+from fleetmap.place import DEFAULT_CASCADE as _C
 
 _M = _C.match
 
@@ -31,7 +31,7 @@ class Settings(BaseSettings):
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = MAX_FRAME_BYTES
-    # cascade (thesis Algorithm 3); defaults from shared.retrieval / shared.matching
+    # cascade (thesis Algorithm 3); defaults from fleetmap.place.types / fleetmap.matching
     m_clusters: int = _C.m_clusters
     gist_threshold: float = _C.gist_threshold
     max_candidates: int = _C.max_candidates

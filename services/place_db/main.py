@@ -7,13 +7,12 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from services import common
-from services.place_db.config import Settings
-from services.place_db.routes import router
-from shared.matching import MatchParams
-from shared.placedb import PlaceDB, RetrainPolicy
-from shared.retrieval import CascadeParams
-from shared.vocabulary import load_vocabulary
+from fleetmap.matching import MatchParams
+from fleetmap.place import CascadeParams, PlaceDB, RetrainPolicy
+from fleetmap.services import common
+from fleetmap.services.place_db.config import Settings
+from fleetmap.services.place_db.routes import router
+from fleetmap.vocabulary import load_vocabulary
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,10 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, Security
 from starlette.concurrency import run_in_threadpool
 
-from services.common import (
+from fleetmap.errors import BadInput, Forbidden, Unauthorized
+from fleetmap.frame import decode
+from fleetmap.place import Candidate, PlaceDB
+from fleetmap.services.common import (
     ERROR_RESPONSES,
     any_token,
     auth_summary,
@@ -19,11 +22,7 @@ from services.common import (
     operator_only,
     read_body,
 )
-from services.place_db import schemas as s
-from shared.errors import BadInput, Forbidden, Unauthorized
-from shared.frame import decode
-from shared.placedb import PlaceDB
-from shared.retrieval import Candidate
+from fleetmap.services.place_db import schemas as s
 
 router = APIRouter(responses=ERROR_RESPONSES)
 FRAME_BODY = {

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
-from services.common import Matrix4
+from fleetmap.services.common import Matrix4
 
 
 class Health(BaseModel):

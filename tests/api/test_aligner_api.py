@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from services.aligner.config import Settings
-from services.aligner.main import create_app
-from shared.client import align_request
-from shared.geometry import transform_error
+from fleetmap.client import align_request
+from fleetmap.geometry import transform_error
+from fleetmap.services.aligner.config import Settings
+from fleetmap.services.aligner.main import create_app
 
 
 @pytest.fixture

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from services.place_db.config import Settings
-from services.place_db.main import create_app
-from shared.dataset import read_recording
-from shared.extract import FrameExtractor, extract_recording
-from shared.frame import encode
+from fleetmap.dataset import read_recording
+from fleetmap.extract import FrameExtractor, extract_recording
+from fleetmap.frame import encode
+from fleetmap.services.place_db.config import Settings
+from fleetmap.services.place_db.main import create_app
 
 OCTET = {"content-type": "application/octet-stream"}
 
@@ -79,7 +79,7 @@ def test_duplicates_are_idempotent_and_conflicts_refused(client, frames):
     assert (first.status_code, again.status_code) == (201, 200)
     assert first.json()["id"] == again.json()["id"]
     other = frames["robot_a"][1]
-    from shared.frame import decode
+    from fleetmap.frame import decode
 
     f = decode(other)
     f.stamp = decode(d).stamp
@@ -132,7 +132,7 @@ def test_delete_robot_and_restart_keep_the_rest(settings, frames):
 
 
 def test_vocabulary_mismatch_is_refused(client, frames):
-    from shared.frame import decode
+    from fleetmap.frame import decode
 
     f = decode(frames["robot_a"][0])
     f.vocab_id = "0123456789abcdef"

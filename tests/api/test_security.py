@@ -6,11 +6,11 @@ import logging
 import pytest
 from fastapi.testclient import TestClient
 
-from services.aligner.config import Settings as AlignerSettings
-from services.aligner.main import create_app as create_aligner
-from services.place_db.config import Settings
-from services.place_db.main import create_app
-from shared.frame import decode, encode
+from fleetmap.frame import decode, encode
+from fleetmap.services.aligner.config import Settings as AlignerSettings
+from fleetmap.services.aligner.main import create_app as create_aligner
+from fleetmap.services.place_db.config import Settings
+from fleetmap.services.place_db.main import create_app
 from tests.unit.test_frame import _mk
 
 OCTET = {"content-type": "application/octet-stream"}
@@ -18,7 +18,7 @@ OP, TOK_A, TOK_B = "op-secret-123", "robot-a-secret", "robot-b-secret"
 
 
 def _frame(robot: str, stamp: float = 1.0) -> bytes:
-    from shared.vocabulary import load_vocabulary
+    from fleetmap.vocabulary import load_vocabulary
 
     f = _mk(robot_id=robot, stamp=stamp)
     f.vocab_id = load_vocabulary().vocab_id

@@ -5,9 +5,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.cli import main
-from services.merge import spanning_placement
-from shared.geometry import pose_from_tum, transform_error
+from fleetmap.geometry import pose_from_tum, transform_error
+from fleetmap.services.cli import main
+from fleetmap.placement import spanning_placement
 
 PLY_ROW = np.dtype(
     [
@@ -138,10 +138,10 @@ def test_merge_simulated_three_robot_fleet(tmp_path, capsys):
 def _mean_map_error(robot_dir: Path, T: np.ndarray, T_true: np.ndarray) -> float:
     """Mean displacement (metres) of a robot's map points (every 5th frame) under T
     against the truth: what a merged map shows."""
-    from shared.dataset import read_recording
-    from shared.geometry import apply
-    from shared.mapcloud import views_cloud
-    from shared.pairs import load_view
+    from fleetmap.dataset import read_recording
+    from fleetmap.geometry import apply
+    from fleetmap.mapcloud import views_cloud
+    from fleetmap.pairs import load_view
 
     rec = read_recording(robot_dir)
     pts = np.asarray(

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.cli import main
-from shared.geometry import transform_error
+from fleetmap.geometry import transform_error
+from fleetmap.services.cli import main
 from tests.conftest import write_robot
 from tests.servers import running
 

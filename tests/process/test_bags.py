@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from shared.bags import BagTopics, bag_to_tum, is_bag
-from shared.dataset import load_depth, load_rgb, read_recording
-from shared.errors import BadRobotData
-from shared.geometry import pose_to_tum, transform_error
+from fleetmap.bags import BagTopics, bag_to_tum, is_bag
+from fleetmap.dataset import load_depth, load_rgb, read_recording
+from fleetmap.errors import BadRobotData
+from fleetmap.geometry import pose_to_tum, transform_error
 
 rosbags = pytest.importorskip("rosbags")
 
@@ -120,7 +120,7 @@ def test_depth_in_metres_and_ambiguous_topics(sun3d, tmp_path):
 
 def test_merge_with_a_ros2_bag_robot_gives_the_folder_transform(sun3d, tmp_path):
     """The issue's target: within 1 mm of the same recording given as a folder."""
-    from services.cli import main
+    from fleetmap.services.cli import main
 
     bag = tmp_path / "robot_b_bag"
     write_bag(sun3d / "robot_b", bag)
@@ -135,7 +135,7 @@ def test_merge_with_a_ros2_bag_robot_gives_the_folder_transform(sun3d, tmp_path)
 
 
 def test_convert_writes_a_tum_folder(sun3d, tmp_path, capsys):
-    from services.cli import main
+    from fleetmap.services.cli import main
 
     bag = tmp_path / "b_bag"
     write_bag(sun3d / "robot_b", bag, frames=3)

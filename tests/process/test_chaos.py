@@ -12,7 +12,7 @@ import time
 import httpx
 import numpy as np
 
-from shared.client import align_request
+from fleetmap.client import align_request
 from tests.servers import Service
 
 OCTET = {"content-type": "application/octet-stream"}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import main
+from fleetmap.services.cli import main
 from tests.servers import ROOT, Service
 
 EXAMPLE = ROOT / "examples" / "fr1_pair"
@@ -20,7 +20,7 @@ def _run(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     import os
 
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
+        [sys.executable, "-m", "fleetmap.services.cli", *args],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -62,8 +62,10 @@ def test_service_urls_from_the_environment(tmp_path):
     assert r.returncode == 1 and "Cannot reach http://127.0.0.1:9" in r.stderr
 
 
-def test_merge_sends_the_token_to_secured_services(tmp_path, capsys):
-    """`fleetmap --token T merge --place-db URL` never sent it: the place database said 401."""
+def test_every_command_sends_the_token_to_secured_services(tmp_path, capsys, monkeypatch):
+    """`fleetmap --token T merge --place-db URL` never sent it: the place database said 401.
+    Now merge, ingest, overlaps and align each send it (from --token or FLEETMAP_TOKEN),
+    and each is refused in one line without it."""
     env = {
         "FLEETMAP_PLACE_DB_OPERATOR_TOKEN": "op-secret",
         "FLEETMAP_ALIGNER_OPERATOR_TOKEN": "op-secret",
@@ -79,6 +81,19 @@ def test_merge_sends_the_token_to_secured_services(tmp_path, capsys):
         assert main(["--token", "op-secret", "-q", "merge", *common, *urls]) == 0
         report = json.loads((out / "report.json").read_text())
         assert report["unmerged"] == []
+        robots = [str(EXAMPLE / "alpha"), str(EXAMPLE / "bravo")]
+        for cmd in (
+            ["ingest", *robots, "--place-db", db.url],
+            ["overlaps", "alpha", "bravo", "--json", "--place-db", db.url],
+            ["align", *robots, "--json", *urls],
+        ):
+            monkeypatch.delenv("FLEETMAP_TOKEN", raising=False)
+            assert main(["-q", *cmd]) == 1, cmd
+            assert "Bearer" in capsys.readouterr().err
+            assert main(["--token", "op-secret", "-q", *cmd]) == 0, cmd
+            monkeypatch.setenv("FLEETMAP_TOKEN", "op-secret")
+            assert main(["-q", *cmd]) == 0, cmd
+        capsys.readouterr()
     finally:
         db.stop()
         al.stop()
@@ -92,8 +107,8 @@ def test_clients_retry_a_503_and_honour_retry_after():
     import threading
     import time
 
-    from shared.client import PlaceDBClient
-    from shared.errors import Unavailable
+    from fleetmap.client import PlaceDBClient
+    from fleetmap.errors import Unavailable
 
     hits = []
 

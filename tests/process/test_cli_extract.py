@@ -1,5 +1,5 @@
-from services.cli import main
-from shared.frame import decode
+from fleetmap.frame import decode
+from fleetmap.services.cli import main
 
 
 def test_extract_writes_one_decodable_frame_per_keyframe(tum_robot, tmp_path, capsys):

@@ -4,7 +4,7 @@ import json
 
 import httpx
 
-from services.cli import main
+from fleetmap.services.cli import main
 from tests.servers import Service
 
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from services.place_db.config import Settings
-from services.place_db.main import create_app
-from shared.frame import decode
+from fleetmap.frame import decode
+from fleetmap.services.place_db.config import Settings
+from fleetmap.services.place_db.main import create_app
 from tests.api.test_place_db_api import OCTET, _post, frames  # noqa: F401  (fixture)
 
 
@@ -128,13 +128,13 @@ def test_a_keyframe_failing_in_the_worker_is_parked_and_blocks_no_other(
 ):
     """A keyframe whose overlap detection raises (here: its stored frame corrupted) is
     counted and parked with its reason; the others are processed and overlap as before."""
-    from shared.placedb import PlaceDB
+    from fleetmap.place import PlaceDB
 
     db = PlaceDB(tmp_path / "p.sqlite", vocabulary, background=False)
     ids = [db.add_keyframe("robot_a", d)[0] for d in frames["robot_a"]]
     ids += [db.add_keyframe("robot_b", d)[0] for d in frames["robot_b"]]
-    with db._write_lock:
-        db._db.execute("UPDATE keyframes SET data=zeroblob(64) WHERE id=?", (ids[3],))
+    with db.store._write_lock:
+        db.store._db.execute("UPDATE keyframes SET data=zeroblob(64) WHERE id=?", (ids[3],))
     db.process_pending()
     st = db.stats()
     assert st["worker_failures"] == 1 and "StorageCorrupt" in st["parked"][ids[3]]
@@ -146,7 +146,15 @@ def test_a_keyframe_failing_in_the_worker_is_parked_and_blocks_no_other(
 def test_a_damaged_database_file_is_one_line_not_a_traceback(tmp_path):
     (tmp_path / "place_db.sqlite").write_bytes(b"this is not sqlite " * 100)
     r = subprocess.run(
-        [sys.executable, "-m", "services.cli", "serve", "place-db", "--data-dir", str(tmp_path)],
+        [
+            sys.executable,
+            "-m",
+            "fleetmap.services.cli",
+            "serve",
+            "place-db",
+            "--data-dir",
+            str(tmp_path),
+        ],
         capture_output=True,
         text=True,
         timeout=60,

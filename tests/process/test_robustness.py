@@ -7,7 +7,7 @@ import time
 
 import httpx
 
-from shared.frame import decode
+from fleetmap.frame import decode
 from tests.servers import Service
 
 OCTET = {"content-type": "application/octet-stream"}

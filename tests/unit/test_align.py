@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from shared.align import AlignParams, align_views
-from shared.camera import TUM_FR1
-from shared.correspondences import RGBDView, pooled_correspondences
-from shared.dataset import load_depth, load_rgb, read_recording
-from shared.errors import BadInput
-from shared.extract import keyframe_indices
-from shared.geometry import transform_error
+from fleetmap.align import AlignParams, align_views
+from fleetmap.camera import TUM_FR1
+from fleetmap.correspondences import RGBDView, pooled_correspondences
+from fleetmap.dataset import load_depth, load_rgb, read_recording
+from fleetmap.errors import BadInput
+from fleetmap.extract import keyframe_indices
+from fleetmap.geometry import transform_error
 from tests.conftest import imread, read_tum_pose
 
 
@@ -118,10 +118,10 @@ def test_sun3d_parts_are_merged_right_or_not_at_all(sun3d, part_a, part_b, swap)
 def test_surface_rmse_prefers_the_truth_to_a_slide(hololens):
     """The refinement choice measures on depth alone: on real HoloLens maps, the true
     alignment's surfaces sit closer than the same alignment slid 3 cm along any axis."""
-    from shared.align import surface_rmse
-    from shared.dataset import read_recording
-    from shared.mapcloud import views_cloud
-    from shared.pairs import load_view
+    from fleetmap.align import surface_rmse
+    from fleetmap.dataset import read_recording
+    from fleetmap.mapcloud import views_cloud
+    from fleetmap.pairs import load_view
 
     clouds = []
     for name in ("hl_a", "hl_b"):

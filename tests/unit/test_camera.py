@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.camera import TUM_FR1, Intrinsics, backproject_pixels, depth_to_points
-from shared.errors import BadInput, BadRobotData
-from shared.geometry import apply, invert
+from fleetmap.camera import TUM_FR1, Intrinsics, backproject_pixels, depth_to_points
+from fleetmap.errors import BadInput, BadRobotData
+from fleetmap.geometry import apply, invert
 from tests.conftest import imread, read_tum_pose
 
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from shared.camera import TUM_FR1
-from shared.dataset import associate, load_depth, parse_robot_arg, read_recording
-from shared.errors import BadRobotData
+from fleetmap.camera import TUM_FR1
+from fleetmap.dataset import associate, load_depth, parse_robot_arg, read_recording
+from fleetmap.errors import BadRobotData
 
 
 def test_reads_sun3d_robot_with_camera_json(sun3d):

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import yaml
 
-from services.cli import build_parser
-from services.place_db.config import Settings as PlaceSettings
+from fleetmap.services.cli import build_parser
+from fleetmap.services.place_db.config import Settings as PlaceSettings
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from shared.errors import BadInput, NotEnoughCorrespondences
-from shared.estimators import AffineEstimator, MLPEstimator, RigidEstimator, SimilarityEstimator
-from shared.geometry import transform_error
-from shared.registration import kabsch, ransac_rigid
+from fleetmap.errors import BadInput, NotEnoughCorrespondences
+from fleetmap.estimators import AffineEstimator, MLPEstimator, RigidEstimator, SimilarityEstimator
+from fleetmap.geometry import transform_error
+from fleetmap.registration import kabsch, ransac_rigid
 
 
 def _random_rigid(rng) -> np.ndarray:

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.camera import depth_to_points
-from shared.dataset import load_depth, read_recording
-from shared.extract import keyframe_indices
-from shared.extract_pool import CLOUD_STRIDE, extract_keyframes
-from shared.frame import encode
-from shared.geometry import apply
+from fleetmap.camera import depth_to_points
+from fleetmap.dataset import load_depth, read_recording
+from fleetmap.extract import keyframe_indices
+from fleetmap.extract_pool import CLOUD_STRIDE, extract_keyframes
+from fleetmap.frame import encode
+from fleetmap.geometry import apply
 
 
 def test_workers_give_the_frames_one_process_gives(sun3d):

@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.errors import BadInput
-from shared.features import FeatureParams, detect_and_describe
+from fleetmap.errors import BadInput
+from fleetmap.features import FeatureParams, detect_and_describe
 from tests.conftest import imread
 
 
@@ -52,7 +52,7 @@ def test_blank_image_gives_no_features_and_bad_dtype_is_rejected():
 def test_verification_treats_an_estimator_failure_as_unverified(monkeypatch):
     """OpenCV's USAC asserts on some degenerate samples (seen on a simulated 8-robot fleet):
     that must mean "not verified", never an exception out of a query or the worker."""
-    from shared import matching
+    from fleetmap import matching
 
     def boom(*args, **kwargs):
         raise cv2.error("OpenCV(5.0.0) error: (-215:Assertion failed) !model.empty()")

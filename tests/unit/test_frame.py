@@ -6,10 +6,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.dataset import load_depth, load_rgb, read_recording
-from shared.errors import BadFrame, BadInput
-from shared.extract import FrameExtractor
-from shared.frame import MAX_FEATURES, MAX_FRAME_BYTES, Frame, decode, encode
+from fleetmap.dataset import load_depth, load_rgb, read_recording
+from fleetmap.errors import BadFrame, BadInput
+from fleetmap.extract import FrameExtractor
+from fleetmap.frame import MAX_FEATURES, MAX_FRAME_BYTES, Frame, decode, encode
 
 
 @pytest.fixture(scope="module")

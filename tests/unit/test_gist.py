@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.errors import BadInput
-from shared.gist import GistParams, compute_gist
+from fleetmap.errors import BadInput
+from fleetmap.gist import GistParams, compute_gist
 from tests.conftest import imread
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 
-from shared.geometry import pose_from_tum
-from shared.keyframes import KeyframePolicy, select_keyframes
+from fleetmap.geometry import pose_from_tum
+from fleetmap.keyframes import KeyframePolicy, select_keyframes
 
 
 def _line(n, step_m):
@@ -25,8 +25,8 @@ def test_without_poses_only_time_counts():
 
 
 def test_real_recording_keyframes_are_spread(sun3d):
-    from shared.dataset import read_recording
-    from shared.extract import keyframe_indices
+    from fleetmap.dataset import read_recording
+    from fleetmap.extract import keyframe_indices
 
     rec = read_recording(sun3d / "robot_b")
     kf = keyframe_indices(rec)

@@ -4,12 +4,13 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.dataset import read_recording
-from shared.extract import FrameExtractor, extract_recording
-from shared.frame import encode
-from shared.placedb import PlaceDB
-from shared.retrieval import CascadeParams, Filter, PlaceIndex, run_cascade
-from shared.vocabulary import bhattacharyya
+from fleetmap.dataset import read_recording
+from fleetmap.extract import FrameExtractor, extract_recording
+from fleetmap.frame import encode
+from fleetmap.place import CascadeParams, Filter, PlaceDB
+from fleetmap.place.cascade import run_cascade
+from fleetmap.place.index import PlaceIndex
+from fleetmap.vocabulary import bhattacharyya
 from tests.covis import covisibility
 
 
@@ -132,10 +133,10 @@ def test_sun3d_link_from_the_aligner_covers_robot_b(sun3d, vocabulary, tmp_path)
     aligner's gated transform is registered as a link, the place database records the
     co-visible pairs: most of robot B's keyframes get one, every one true by the ground
     truth, also for keyframes that arrive after the link, and they survive a restart."""
-    from shared.align import align_views
-    from shared.correspondences import RGBDView
-    from shared.dataset import load_depth, load_rgb
-    from shared.extract import keyframe_indices
+    from fleetmap.align import align_views
+    from fleetmap.correspondences import RGBDView
+    from fleetmap.dataset import load_depth, load_rgb
+    from fleetmap.extract import keyframe_indices
 
     recs = {r: read_recording(sun3d / r) for r in ("robot_a", "robot_b")}
     views = {

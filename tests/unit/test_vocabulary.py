@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from shared.errors import BadVocabulary
-from shared.features import detect_and_describe
-from shared.gist import GistParams
-from shared.training import collect_images, train_from_images
-from shared.vocabulary import Vocabulary, bhattacharyya, load_vocabulary
+from fleetmap.errors import BadVocabulary
+from fleetmap.features import detect_and_describe
+from fleetmap.gist import GistParams
+from fleetmap.training import collect_images, train_from_images
+from fleetmap.vocabulary import Vocabulary, bhattacharyya, load_vocabulary
 from tests.conftest import imread
 
 

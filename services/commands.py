@@ -1,0 +1,345 @@
+"""The CLI's commands: each takes the parsed arguments and returns the exit status."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from tqdm import tqdm
+
+from fleetmap.camera import Intrinsics
+
+log = logging.getLogger("fleetmap")
+
+
+def _topics(args: argparse.Namespace):
+    from fleetmap.bags import BagTopics
+
+    return BagTopics(*(getattr(args, f"{k}_topic", None) for k in ("rgb", "depth", "info", "pose")))
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    """A ROS bag robot written out as a TUM folder."""
+    from fleetmap.bags import bag_to_tum, is_bag
+    from fleetmap.dataset import read_recording
+
+    src, out = Path(args.bag), Path(args.output)
+    if not is_bag(src):
+        from fleetmap.errors import BadRobotData
+
+        raise BadRobotData(f"{src}: not a ROS bag (.bag, or a folder with metadata.yaml)")
+    if out.exists():
+        from fleetmap.errors import BadInput
+
+        raise BadInput(f"{out} exists: give a new folder")
+    bag_to_tum(src, out, _topics(args))
+    rec = read_recording(out)
+    print(f"{len(rec)} RGB-D frames with poses -> {out}")
+    return 0
+
+
+def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
+    overrides = {
+        k: getattr(args, k)
+        for k in ("fx", "fy", "cx", "cy", "depth_scale")
+        if getattr(args, k, None) is not None
+    }
+    if not overrides:
+        return None
+    from fleetmap.dataset import read_recording
+
+    base = read_recording(robot_dir, topics=_topics(args)).intrinsics.to_dict()
+    return Intrinsics.from_dict({**base, **overrides})
+
+
+def _read_robots(args: argparse.Namespace, robot_args: list[str]) -> list:
+    """Recordings with depth and poses for [NAME=]DIR arguments."""
+    from fleetmap.dataset import parse_robot_arg, read_recording
+
+    recs = []
+    for arg in robot_args:
+        name, robot_dir = parse_robot_arg(arg)
+        recs.append(
+            read_recording(
+                robot_dir,
+                name,
+                _intrinsics(args, robot_dir),
+                require_depth=True,
+                require_poses=True,
+                topics=_topics(args),
+            )
+        )
+    return recs
+
+
+def _policy(args: argparse.Namespace):
+    from fleetmap.keyframes import KeyframePolicy
+
+    return KeyframePolicy(args.kf_translation, args.kf_rotation, args.kf_interval)
+
+
+def cmd_extract(args: argparse.Namespace) -> int:
+    """Write one encoded frame structure per keyframe of a robot folder."""
+    from fleetmap.dataset import parse_robot_arg, read_recording
+    from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
+    from fleetmap.frame import encode
+    from fleetmap.vocabulary import load_vocabulary
+
+    name, robot_dir = parse_robot_arg(args.robot)
+    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
+    extractor = FrameExtractor(load_vocabulary(args.vocab))
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    n = len(keyframe_indices(rec, _policy(args)))
+    total = 0
+    frames = extract_recording(rec, extractor, _policy(args))
+    for frame in tqdm(frames, total=n, desc=f"extract {rec.robot_id}", unit="kf"):
+        data = encode(frame)
+        (out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf").write_bytes(data)
+        total += len(data)
+    print(
+        f"{n} keyframes of {len(rec)} frames -> {out} "
+        f"({total / max(n, 1) / 1024:.1f} KiB per frame)"
+    )
+    return 0
+
+
+def cmd_vocab_train(args: argparse.Namespace) -> int:
+    """Train the GIST codebook and SIFT words (thesis Algorithm 1)."""
+    from fleetmap.training import collect_images, train_from_images
+
+    paths = collect_images(args.inputs, stride=args.stride)
+    vocab = train_from_images(
+        paths,
+        n_gist_clusters=args.gist_clusters,
+        n_words=args.words,
+        seed=args.seed,
+        progress=lambda it: tqdm(it, total=len(paths), desc="describe", unit="img"),
+        source=args.source or ", ".join(str(i) for i in args.inputs),
+    )
+    vocab.save(args.output)
+    print(
+        f"vocabulary {vocab.vocab_id}: {len(vocab.gist_centroids)} GIST clusters, "
+        f"{vocab.n_words} words from {len(paths)} images -> {args.output}"
+    )
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Run one service in the foreground until SIGTERM/SIGINT."""
+    import uvicorn
+
+    from fleetmap.services.common import header_timeout_protocol
+
+    if args.service == "place-db":
+        from fleetmap.place import check_database_file
+        from fleetmap.services.place_db.config import Settings
+        from fleetmap.services.place_db.main import create_app
+
+        overrides = {"data_dir": Path(args.data_dir)} if args.data_dir else {}
+        settings = Settings(**overrides)
+        check_database_file(settings.db_path)  # a damaged file: one line, exit 1
+        app = create_app(settings)
+    else:
+        from fleetmap.services.aligner.config import Settings as AlignerSettings
+        from fleetmap.services.aligner.main import create_app as create_aligner
+
+        app = create_aligner(AlignerSettings())
+    port = args.port or (8100 if args.service == "place-db" else 8200)
+    from fleetmap.services.common import auth_summary
+
+    log.warning(
+        "fleetmap %s %s listening on http://%s:%d (%s)",
+        args.service,
+        version(),
+        args.host,
+        port,
+        auth_summary(app.state.settings),
+    )
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=port,
+        log_level="info" if args.verbose else "warning",
+        timeout_graceful_shutdown=30,
+        # our middleware logs each request (path without query string, sanitised id);
+        # uvicorn's access line would log a token sent as ?token=... verbatim
+        access_log=False,
+        http=header_timeout_protocol(),
+    )
+    return 0
+
+
+def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tuple[str, int]:
+    """Extract a robot folder's keyframes and POST them; returns (robot id, keyframes)."""
+    from fleetmap.dataset import parse_robot_arg, read_recording
+    from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
+
+    name, robot_dir = parse_robot_arg(robot_arg)
+    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
+    n = len(keyframe_indices(rec, _policy(args)))
+    frames = extract_recording(rec, FrameExtractor(vocab), _policy(args))
+    for frame in tqdm(
+        frames,
+        total=n,
+        desc=f"ingest {rec.robot_id}",
+        unit="kf",
+        disable=getattr(args, "quiet", False),
+    ):
+        client.add_keyframe(frame)
+    return rec.robot_id, n
+
+
+def cmd_ingest(args: argparse.Namespace) -> int:
+    """Select keyframes of robot folders, compute their frame structures and POST them."""
+    from fleetmap.client import PlaceDBClient
+    from fleetmap.services.merge import checked_vocabulary
+
+    with PlaceDBClient(args.place_db, token=args.token) as client:
+        vocab = checked_vocabulary(client, args.vocab)
+        for robot in args.robots:
+            rid, n = ingest_robot(robot, client, args, vocab)
+            print(f"{rid}: {n} keyframes ingested")
+    return 0
+
+
+def cmd_overlaps(args: argparse.Namespace) -> int:
+    """Verified keyframe pairs between two robots."""
+    import json
+
+    from fleetmap.client import PlaceDBClient
+
+    with PlaceDBClient(args.place_db, token=args.token) as client:
+        pairs = client.overlaps(args.robot_a, args.robot_b, wait=args.wait)
+    items = [
+        {
+            "robot_a": p["robot_a"],
+            "stamp_a": p["stamp_a"],
+            "robot_b": p["robot_b"],
+            "stamp_b": p["stamp_b"],
+            "inliers": p["inliers"],
+            "keyframe_a": p["keyframe_a"],
+            "keyframe_b": p["keyframe_b"],
+        }
+        for p in pairs
+    ]
+    if args.json:
+        print(json.dumps({"overlaps": items}, indent=2))
+    else:
+        print(f"{len(items)} verified pairs between {args.robot_a} and {args.robot_b}")
+        for it in items:
+            print(f"  {it['stamp_a']:.6f} <-> {it['stamp_b']:.6f}  {it['inliers']} inliers")
+    return 0
+
+
+def cmd_align(args: argparse.Namespace) -> int:
+    """Align robot B's map to robot A's from their verified overlaps."""
+    import json
+
+    from fleetmap.client import AlignerClient, PlaceDBClient
+    from fleetmap.extract import keyframe_indices
+    from fleetmap.pairs import pair_views
+
+    rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
+    with PlaceDBClient(args.place_db, token=args.token) as db:
+        overlaps = db.overlaps(rec_a.robot_id, rec_b.robot_id, wait=args.wait)
+    kfs = [keyframe_indices(r, _policy(args)) for r in (rec_a, rec_b)]
+    views = pair_views(overlaps, rec_a, rec_b, *kfs, args.max_views)
+    if not views:
+        out = {
+            "merged": False,
+            "reason": f"no verified overlap between {rec_a.robot_id} and {rec_b.robot_id}",
+        }
+    else:
+        with AlignerClient(args.aligner, timeout=600, token=args.token) as aligner:
+            res = aligner.align(views, method=args.method)
+        n_a, n_b = len({id(v) for v, _ in views}), len({id(v) for _, v in views})
+        out = {
+            "merged": res["merged"],
+            "robot_a": rec_a.robot_id,
+            "robot_b": rec_b.robot_id,
+            "views": [n_a, n_b],
+            **res,
+        }
+        if not res["merged"]:
+            out.pop("transform", None)
+    if args.json:
+        print(json.dumps(out, indent=2))
+    elif out["merged"]:
+        print(
+            f"merged {rec_b.robot_id} into {rec_a.robot_id} ({out['method']}, "
+            f"{out['inliers']} inliers, held-out {out['holdout_residual_m']:.3f} m):"
+        )
+        for row in out["transform"]:
+            print("  " + " ".join(f"{v:10.5f}" for v in row))
+    else:
+        print(f"not merged: {out['reason']}")
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace) -> int:
+    """The main job: N robot folders in, one global map and report out."""
+    from fleetmap.errors import BadInput
+    from fleetmap.pictures import n_cascade
+    from fleetmap.services.merge import run_merge
+
+    recs = _read_robots(args, args.robots)
+    ids = [r.robot_id for r in recs]
+    if len(set(ids)) != len(ids):
+        raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out} exists and is not a folder")
+    report = run_merge(
+        recs,
+        out,
+        _policy(args),
+        args.vocab,
+        args.place_db,
+        args.aligner,
+        max_views=args.max_views,
+        voxel=args.voxel,
+        quiet=args.quiet,
+        token=args.token,
+        pcd=args.pcd,
+    )
+    merged = [r for r in ids if r not in report["unmerged"]]
+    print(
+        f"merged {len(merged)} of {len(ids)} robots into {report['reference']}'s frame "
+        f"({n_cascade(report)} verified overlaps, "
+        f"{len(report['overlaps']) - n_cascade(report)} more co-visible once aligned, "
+        f"{report['timing_s']['total']:.1f} s)"
+    )
+    if report["unmerged"]:
+        print(f"unmerged (no trustworthy overlap): {', '.join(report['unmerged'])}")
+    print(f"results: {out / 'report.json'}, {out / 'merged.ply'}, {out / 'overview.png'}")
+    return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """A synthetic fleet recording with the true transforms beside it."""
+    from fleetmap.simulate import simulate_fleet
+
+    out = Path(args.out)
+    if args.robots < 1:
+        from fleetmap.errors import BadInput
+
+        raise BadInput(f"--robots must be at least 1, got {args.robots}")
+    simulate_fleet(
+        out, args.robots, args.frames, args.seed, progress=lambda it, **kw: tqdm(it, **kw)
+    )
+    print(
+        f"{args.robots} robots x {args.frames} frames -> {out} (true transforms: "
+        f"{out / 'T_true.json'})"
+    )
+    return 0
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fleetmap")
+    except PackageNotFoundError:
+        return "unknown (not installed)"

@@ -1,0 +1,151 @@
+"""What `fleetmap merge` (and `fleetmap map`) write: merged.ply (and .pcd), every frame's
+trajectory in the reference frame (TUM), the robots' pose graph (g2o), report.json, and
+the pictures (overview.png, overlap_matrix.png)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from fleetmap import pictures
+from fleetmap.dataset import Recording
+from fleetmap.geometry import apply, pose_to_tum
+from fleetmap.mapcloud import ROBOT_COLOURS, write_pcd, write_ply
+
+#: report.json layout version (2: schema_version, transform_convention, parameters).
+REPORT_VERSION = 2
+TRANSFORM_CONVENTION = (
+    "transforms[R] is T_ref_R: it maps points of robot R's map frame into the "
+    "reference robot's map frame (row-major 4x4, metres)"
+)
+
+
+@dataclasses.dataclass
+class Drawing:
+    """What the pictures need from the placed maps (all in the reference frame)."""
+
+    points: list = dataclasses.field(default_factory=list)  # per merged robot, (N, 3)
+    names: list = dataclasses.field(default_factory=list)
+    colours: list = dataclasses.field(default_factory=list)
+    tracks: dict = dataclasses.field(default_factory=dict)  # robot -> keyframe positions
+    positions: dict = dataclasses.field(default_factory=dict)  # robot -> {stamp: position}
+    downs: list = dataclasses.field(default_factory=list)  # cameras' image-down axes
+
+
+def write_maps(
+    out: Path, recs, kf_index, clouds, placed, edges, voxel: float = 0.03, pcd: bool = False
+) -> Drawing:
+    """merged.ply (image colour, per-point robot index), trajectories of every frame and
+    pose_graph.g2o; returns what the pictures need."""
+    (out / "trajectories").mkdir(exist_ok=True)
+    d, cols, robot_idx = Drawing(), [], []
+    ref = recs[0].robot_id
+    for k, rec in enumerate(recs):
+        rid = rec.robot_id
+        if rid not in placed:
+            continue
+        T = placed[rid]
+        p, c = clouds[rid].voxelised(voxel)
+        d.points.append(apply(T, p))
+        cols.append(c)
+        robot_idx.append(np.full(len(p), k, np.uint16))
+        d.names.append(rid)
+        d.colours.append(ROBOT_COLOURS[k % len(ROBOT_COLOURS)])
+        kfs = [rec.frames[i] for i in kf_index[rid]]
+        poses = [T @ f.T_map_cam for f in kfs]
+        d.tracks[rid] = np.array([P[:3, 3] for P in poses])
+        d.downs.extend(P[:3, 1] for P in poses)
+        d.positions[rid] = {round(f.stamp, 6): P[:3, 3] for f, P in zip(kfs, poses, strict=True)}
+        _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, T, ref)
+    if d.points:
+        pts, col, idx = np.concatenate(d.points), np.concatenate(cols), np.concatenate(robot_idx)
+        write_ply(out / "merged.ply", pts, col, robot=idx)
+        if pcd:
+            write_pcd(out / "merged.pcd", pts, col, idx)
+    write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
+    return d
+
+
+def write_pictures(out: Path, ids: list[str], d: Drawing, report: dict) -> None:
+    """overview.png (top-down, verified overlaps drawn) and overlap_matrix.png."""
+    if d.points:
+        links = []
+        for o in report["overlaps"]:
+            if o.get("source", "cascade") != "cascade":
+                continue
+            pa = d.positions.get(o["robot_a"], {}).get(round(o["stamp_a"], 6))
+            pb = d.positions.get(o["robot_b"], {}).get(round(o["stamp_b"], 6))
+            if pa is not None and pb is not None:
+                links.append((pa, pb))
+        pictures.overview(
+            out / "overview.png", d.points, d.tracks, d.names, d.colours, links, report, d.downs
+        )
+    pictures.overlap_matrix(out / "overlap_matrix.png", ids, report)
+
+
+def _write_trajectory(path: Path, rec: Recording, T_ref_map: np.ndarray, ref: str) -> None:
+    """Every frame's camera pose in the global frame, TUM format."""
+    lines = [f"# timestamp tx ty tz qx qy qz qw (camera to {ref}'s map frame)"]
+    lines += [
+        f"{f.stamp:.6f} " + " ".join(f"{x:.6f}" for x in pose_to_tum(T_ref_map @ f.T_map_cam))
+        for f in rec.frames
+        if f.T_map_cam is not None
+    ]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_g2o(path: Path, ids: list[str], placed: dict, edges: dict) -> None:
+    """The robots' pose graph in g2o's SE3 format: one vertex per placed robot (its map
+    frame in the reference's), one edge per gated pairwise fit, information scaled by the
+    fit's inliers. The reference's vertex is fixed."""
+    idx = {r: k for k, r in enumerate(ids)}
+    lines = [f"# fleetmap pose graph: vertex k = robot {', '.join(ids)}"]
+    for r in ids:
+        if r in placed:
+            lines.append(f"VERTEX_SE3:QUAT {idx[r]} " + _g2o_pose(placed[r]))
+    lines.append(f"FIX {idx[ids[0]]}")
+    for (a, b), e in edges.items():
+        info = _g2o_information(np.eye(6) * max(float(e["inliers"]), 1.0))
+        upper = " ".join(f"{info[i, j]:g}" for i in range(6) for j in range(i, 6))
+        lines.append(f"EDGE_SE3:QUAT {idx[a]} {idx[b]} {_g2o_pose(e['T_a_b'])} {upper}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _g2o_information(info: np.ndarray) -> np.ndarray:
+    """Open3D's (rotation, translation) information to g2o's (translation, quaternion
+    vector): blocks swapped, rotation scaled for the half angle (dtheta = 2 dq)."""
+    J = np.zeros((6, 6))
+    J[0:3, 3:6] = 2.0 * np.eye(3)  # rotation <- quaternion vector
+    J[3:6, 0:3] = np.eye(3)  # translation <- translation
+    return J.T @ info @ J
+
+
+def _g2o_pose(T: np.ndarray) -> str:
+    return " ".join(f"{x:.9f}" for x in pose_to_tum(T))
+
+
+def build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params) -> dict:
+    """report.json's content (CONTRACT section 2) but its timings."""
+    ids = [r.robot_id for r in recs]
+    return {
+        "schema_version": REPORT_VERSION,
+        "reference": ids[0],
+        "transform_convention": TRANSFORM_CONVENTION,
+        "robots": {
+            r.robot_id: {
+                "keyframes": len(kf_index[r.robot_id]),
+                "frames": len(r),
+                "source": str(r.root),
+                "chain": chain.get(r.robot_id),
+            }
+            for r in recs
+        },
+        "transforms": {r: placed[r].tolist() for r in ids if r in placed},
+        "overlaps": overlaps,
+        "fits": fits,
+        "unmerged": [r for r in ids if r not in placed],
+        "pose_graph": {"edges": len(edges), "optimised": optimised},
+        "parameters": params,
+    }

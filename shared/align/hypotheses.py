@@ -1,0 +1,166 @@
+"""Rigid hypotheses for the transform between two maps, and how they are judged and
+refined: sequential RANSAC on the pooled matches, one RANSAC per pair, ICP on the clouds,
+the free-space test, and the choice among refinements (see `choose`)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from fleetmap.align.types import AlignParams, Hypothesis
+from fleetmap.correspondences import Correspondences
+from fleetmap.geometry import apply, invert, transform_error
+from fleetmap.mapcloud import REG, free_space_check, icp, overlap_fitness
+from fleetmap.registration import ransac_rigid
+
+log = logging.getLogger(__name__)
+
+
+def rigid_hypotheses(C: Correspondences, p: AlignParams) -> list[Hypothesis]:
+    """Sequential RANSAC: disjoint consensus sets, largest first."""
+    X, Y = C.X, C.Y
+    left = np.ones(len(X), bool)
+    out = []
+    for k in range(p.hypotheses):
+        if left.sum() < p.min_inliers:
+            break
+        idx = np.flatnonzero(left)
+        T, inl = ransac_rigid(X[idx], Y[idx], p.ransac_tol_m, iterations=2000, seed=k)
+        if inl.sum() < max(3, p.min_inliers // 2):
+            break
+        out.append(Hypothesis(T, int(inl.sum())))
+        left[idx[inl]] = False
+    return out
+
+
+def pair_hypotheses(R: Correspondences, p: AlignParams) -> list[Hypothesis]:
+    """One rigid RANSAC per pair on its raw matches: a wide-baseline pair may hold only a
+    handful of right matches, drowned when pooled with a look-alike place's many."""
+    out = []
+    for k in np.unique(R.pair):
+        m = R.pair == k
+        if m.sum() < p.pair_min_support + 1:
+            continue
+        T, inl = ransac_rigid(R.X[m], R.Y[m], 1.25 * p.ransac_tol_m, iterations=200, seed=int(k))
+        if inl.sum() >= p.pair_min_support:
+            out.append(Hypothesis(T, int(inl.sum()), f"pair {int(k)}"))
+    return out
+
+
+def _distinct(hyps: list[Hypothesis], probe: np.ndarray, min_m: float) -> list[Hypothesis]:
+    """Greedy: keep a hypothesis unless it moves the probe points within `min_m` (RMS) of
+    one already kept. Order = priority."""
+    kept: list[Hypothesis] = []
+    moved: list[np.ndarray] = []
+    for h in hyps:
+        q = apply(h.T_a_b, probe)
+        if all(np.sqrt(((q - r) ** 2).sum(1).mean()) > min_m for r in moved):
+            kept.append(h)
+            moved.append(q)
+    return kept
+
+
+def _judge(h: Hypothesis, cloud_b, cloud_a, views_a, views_b, margin: float, fit_d: float):
+    pb, pa = np.asarray(cloud_b.points), np.asarray(cloud_a.points)
+    s1, c1 = free_space_check(apply(h.T_a_b, pb), views_a, margin)
+    s2, c2 = free_space_check(apply(invert(h.T_a_b), pa), views_b, margin)
+    h.supports, h.conflicts = s1 + s2, c1 + c2
+    h.fitness = overlap_fitness(cloud_b, cloud_a, h.T_a_b, fit_d)
+
+
+def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, int]:
+    """Truncated mean residual of the raw matches under T, and how many are within tol."""
+    r = np.linalg.norm(apply(T, R.X) - R.Y, axis=1)
+    return float(np.minimum(r, tol).mean()), int(np.count_nonzero(r < tol))
+
+
+def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
+    """Coarse: point-to-plane ICP of every distinct hypothesis on coarse clouds, judged by
+    the free-space test; those that keep visual support (at least `min_inliers` raw
+    matches agreeing) are judged again on the fine clouds, the best few; the winner is
+    refined two ways (fine point-to-plane ICP, multi-scale coloured ICP) and the refinement
+    the raw matches agree with best is kept. Returns (best, distinct rivals
+    judged the same way).
+
+    Why two refinements: in a room of floor, walls and desks, fine point-to-plane ICP
+    slides along the planes (SUN3D: 8-12 cm from the ground truth, started at the ground
+    truth itself) where colour texture pins the slide (2-3 cm); on exact simulated data the
+    plain point-to-plane fit is the better one (0.08 against 0.2-2 cm), and where colour is
+    not registered to depth, colour pulls the fit off (HoloLens lounge: 1.6 cm coloured, 1.0
+    cm geometric). The depth decides: the refinement whose surfaces sit closest
+    (`surface_rmse` within one fine voxel, depth only) is kept. (The raw matches decided
+    before; their truncated costs differed by 0.1% between the two and chose colour on the
+    HoloLens.) See docs/ALIGNER.md."""
+    v0, v1 = p.coarse_voxel_m, p.voxel_m
+    ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
+    probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
+    hyps = sorted(hyps, key=lambda h: -h.support)
+    hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
+    log.debug("%d distinct hypotheses", len(hyps))
+    for h in hyps:
+        h.T_a_b, _, _ = icp(cb0, ca0, h.T_a_b, distances=(4 * v0, 1.5 * v0), iterations=15)
+    hyps = _distinct(hyps, probe, v0)
+    for h in hyps:
+        _judge(h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
+        h.support = _visual_cost(h.T_a_b, R, 1.5 * p.ransac_tol_m)[1]
+    backed = [h for h in hyps if h.support >= p.min_inliers] or hyps
+    backed.sort(key=lambda h: -h.score)
+    top = backed[: p.refine]
+    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
+    for h in top:
+        _judge(h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
+    top.sort(key=lambda h: -h.score)
+    best = top[0]
+    for T, source in sorted(
+        _refinements(best, clouds, p), key=lambda c: surface_rmse(cb1, ca1, c[0], v1)
+    ):
+        dt, dr = transform_error(T, best.T_a_b)
+        if dt <= p.rival_m and dr <= p.rival_deg:  # a refinement, not a jump elsewhere
+            polished = Hypothesis(T, best.support, source)
+            # rivals were judged unrefined: compare like with like
+            polished.supports, polished.conflicts = best.supports, best.conflicts
+            polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
+            return polished, top[1:]
+    return best, top[1:]
+
+
+def _refinements(best: Hypothesis, clouds, p: AlignParams) -> list[tuple[np.ndarray, str]]:
+    """The best hypothesis refined two ways: point-to-plane ICP (the wide distances on the
+    coarser colour scale's cloud, the last on the fine one), and multi-scale coloured ICP
+    where both clouds have colour. Returns [(T_a_b, source)]."""
+    v1 = p.voxel_m
+    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
+    vm = 4 * v1 / 3
+    T, _, _ = icp(clouds[1].at(vm), clouds[0].at(vm), best.T_a_b, (3 * v1, 1.5 * v1), 20)
+    T, _, _ = icp(cb1, ca1, T, distances=(v1,), iterations=20)
+    refined = [(T, best.source + "+icp")]
+    if not (p.colour_icp and ca1.has_colors() and cb1.has_colors()):
+        return refined
+    T = best.T_a_b
+    try:
+        for v in (vm, 2 * v1 / 3):
+            ca, cb = clouds[0].at(v), clouds[1].at(v)
+            r = REG.registration_colored_icp(
+                cb,
+                ca,
+                1.5 * v,
+                T,
+                REG.TransformationEstimationForColoredICP(),
+                REG.ICPConvergenceCriteria(max_iteration=20),
+            )
+            T = np.asarray(r.transformation)
+        refined.append((T, best.source + "+colour"))
+    except RuntimeError:  # too few points with colour gradients
+        pass
+    return refined
+
+
+def surface_rmse(source, target, T: np.ndarray, distance: float) -> float:
+    """RMS distance (metres) of the source points that land within `distance` of the
+    target under T, a tenth more for every tenth of the source that does not: how closely
+    two maps' surfaces sit, measured on depth alone."""
+    ev = REG.evaluate_registration(source, target, distance, T)
+    if ev.fitness == 0:
+        return float("inf")
+    return float(ev.inlier_rmse) * (1.0 + (1.0 - ev.fitness))

@@ -1,0 +1,150 @@
+"""The default alignment of two robots' maps from matched RGB-D pairs, with a quality gate.
+
+1. Pool 3D-3D correspondences over the pairs (`fleetmap.correspondences`).
+2. Rigid hypotheses by sequential RANSAC: the best consensus, then the best among what is
+   left, and so on. Look-alike places (rows of identical cubicles) give consistent but
+   wrong consensus sets, so the largest one is not trusted blindly.
+3. Each hypothesis refined by point-to-plane ICP on the two robots' map clouds and scored
+   by geometric overlap; the best wins.
+4. The gate: enough inlier correspondences, enough spread, a small held-out residual (each
+   fold of inliers predicted by a fit on the others), and no rival hypothesis far away with
+   nearly the same overlap. Otherwise: no merge, with the reason.
+5. An MLP (the thesis's estimator) on the inliers, kept only where it lowers the held-out
+   error of the rigid fit.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from fleetmap.align.hypotheses import choose, pair_hypotheses, rigid_hypotheses
+from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
+from fleetmap.align.validation import holdout_residual, spread
+from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
+from fleetmap.errors import BadInput
+from fleetmap.estimators import MLPEstimator
+from fleetmap.geometry import apply, transform_error
+from fleetmap.mapcloud import ViewsCloud
+
+log = logging.getLogger(__name__)
+
+
+def align_views(
+    pairs: list[tuple[RGBDView, RGBDView]],
+    p: AlignParams = DEFAULT_ALIGN,
+) -> AlignResult:
+    """Fit T_a_b from RGB-D pairs (view of robot A, view of robot B); gate it.
+
+    Views shared by several pairs (the same object) are processed once."""
+    t0 = time.perf_counter()
+    if not pairs:
+        raise BadInput("Give at least one RGB-D pair")
+    C, R = verified_and_raw(pairs, pair_features(pairs))
+    res = _align(C, R, pairs, p)
+    res.correspondences = len(R)
+    res.seconds = time.perf_counter() - t0
+    log.info(
+        "alignment: merged=%s (%s), %d correspondences, %.1f s",
+        res.merged,
+        res.reason,
+        len(R),
+        res.seconds,
+    )
+    return res
+
+
+def _align(C: Correspondences, R: Correspondences, pairs, p: AlignParams) -> AlignResult:
+    """C: verified (epipolar) correspondences, R: raw matches of every pair."""
+    if len(R) < p.min_inliers:
+        return AlignResult(
+            False, f"only {len(R)} correspondences with depth (need {p.min_inliers})"
+        )
+    hyps = rigid_hypotheses(C, p) if len(C) >= p.min_inliers else []
+    hyps += pair_hypotheses(R, p)
+    if not hyps:
+        return AlignResult(False, "no rigid consensus among the correspondences")
+    views_a, views_b = unique_views(pairs, 0), unique_views(pairs, 1)
+    clouds = ViewsCloud(views_a), ViewsCloud(views_b)
+    if p.use_icp:
+        best, rivals = choose(hyps, R, views_a, views_b, clouds, p)
+        method = "rigid+icp+colour" if best.source.endswith("+colour") else "rigid+icp"
+    else:
+        best, rivals = max(hyps, key=lambda h: h.support), []
+        method = "rigid"
+    inl = np.linalg.norm(apply(best.T_a_b, R.X) - R.Y, axis=1) < p.ransac_tol_m
+    out = AlignResult(
+        False,
+        "",
+        best.T_a_b,
+        method,
+        inliers=int(inl.sum()),
+        fitness=best.fitness,
+        hypotheses=[h.summary() for h in [best, *rivals]],
+    )
+    out.reason = (_geometry_gate(best, rivals, p) if p.use_icp else "") or _match_gate(
+        out, R, inl, p
+    )
+    if out.reason:
+        return out
+    if p.try_mlp and out.inliers >= 30:
+        _try_mlp(out, R, inl, clouds[1], p)
+    out.merged, out.reason = True, "passed the quality gate"
+    return out
+
+
+def _geometry_gate(best, rivals, p: AlignParams) -> str:
+    """Why the maps' geometry refuses the best hypothesis, or "" if it does not."""
+    if best.fitness < p.min_overlap:
+        return f"the maps overlap on {best.fitness:.2f} of B's cloud (need {p.min_overlap})"
+    if best.consistency < p.min_consistency:
+        return (
+            f"free-space consistency {best.consistency:.2f} (need {p.min_consistency}): "
+            "the aligned maps put surfaces where the cameras saw empty space"
+        )
+    for h in rivals:
+        dt, dr = transform_error(h.T_a_b, best.T_a_b)
+        if (dt > p.rival_m or dr > p.rival_deg) and h.score >= p.ambiguity * best.score:
+            return (
+                f"ambiguous: a rival alignment {dt:.2f} m / {dr:.0f} deg away scores "
+                f"{h.score:.0f} against {best.score:.0f} (self-similar place?)"
+            )
+    return ""
+
+
+def _match_gate(out: AlignResult, R: Correspondences, inl: np.ndarray, p: AlignParams) -> str:
+    """Why the inlier matches refuse the fit (count, spread, held-out residual), or ""."""
+    if out.inliers < p.min_inliers:
+        return f"{out.inliers} inlier correspondences (need {p.min_inliers})"
+    sp = spread(R.X[inl])
+    if sp < p.min_spread_m:
+        return f"inliers spread {sp:.2f} m (need {p.min_spread_m})"
+    out.holdout_m = holdout_residual(R.X[inl], R.Y[inl])
+    if not out.holdout_m <= p.max_holdout_m:
+        return f"held-out residual {out.holdout_m:.3f} m (max {p.max_holdout_m})"
+    return ""
+
+
+def _try_mlp(out: AlignResult, R: Correspondences, inl, cloud_b, p: AlignParams) -> None:
+    """The thesis MLP on the inliers, kept where it lowers the rigid fit's held-out error
+    by a tenth and stays a correction of it over B's whole map."""
+    # at most 1,000 inliers, spread at random: enough for 150 weights, and the
+    # cross-validation stays under a second
+    idx = np.flatnonzero(inl)
+    if len(idx) > 1000:
+        idx = np.sort(np.random.default_rng(0).choice(idx, 1000, replace=False))
+    rigid_m = holdout_residual(R.X[idx], R.Y[idx])
+    out.mlp_holdout_m = holdout_residual(R.X[idx], R.Y[idx], model="mlp")
+    if out.mlp_holdout_m < 0.9 * rigid_m:
+        mlp = MLPEstimator().fit(R.X[idx], R.Y[idx])
+        # a correction, not a reshaping: over B's whole map (beyond the matches, where
+        # a network fitted to noise can bend away) it must stay near the rigid fit
+        pb = np.asarray(cloud_b.at(p.coarse_voxel_m).points)
+        bend = float(np.max(np.linalg.norm(mlp.transform(pb) - apply(out.T_a_b, pb), axis=1)))
+        if bend <= 2 * p.max_holdout_m:
+            out.mlp = mlp
+            out.method += "+mlp"
+        else:
+            log.info("MLP kept out: it bends B's map %.2f m away from the rigid fit", bend)

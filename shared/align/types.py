@@ -1,0 +1,144 @@
+"""The alignment's data types and parameters: numpy only (no torch, no Open3D)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fleetmap.geometry import apply
+
+if TYPE_CHECKING:
+    from fleetmap.estimators import MLPEstimator
+
+# Every way to align two robots' maps: the gated default and the baselines beside it.
+# The CLI's choices, the aligner's request schema and the dispatcher all read this.
+METHODS: dict[str, str] = {
+    "default": "gated: RANSAC hypotheses, free-space judged ICP, held-out residual, MLP",
+    "rigid": "rigid fit in RANSAC on the visual correspondences (no gate)",
+    "similarity": "similarity fit in RANSAC on the visual correspondences (no gate)",
+    "affine": "affine fit in RANSAC on the visual correspondences (no gate)",
+    "mlp": "the thesis MLP on the visual correspondences (no gate)",
+    "icp": "point-to-plane ICP from identity on the depth clouds (no gate)",
+    "fpfh": "FPFH + RANSAC + ICP on the depth clouds, the map_merge_3d recipe (no gate)",
+}
+
+
+@dataclass(frozen=True)
+class AlignParams:
+    """Gate thresholds in metres; see the module docstring for the stages."""
+
+    ransac_tol_m: float = 0.08
+    min_inliers: int = 12
+    min_spread_m: float = 0.15
+    max_holdout_m: float = 0.08
+    hypotheses: int = 6  # disjoint consensus sets of the pooled verified matches
+    pair_min_support: int = 4  # a pair's raw matches give a hypothesis with this support
+    max_candidates: int = 40  # distinct hypotheses scored at the coarse scale
+    dedupe_m: float = 0.25  # hypotheses closer than this (RMS over B's cloud) share one ICP basin
+    refine: int = 4  # best coarse hypotheses refined at the fine scale
+    voxel_m: float = 0.03
+    coarse_voxel_m: float = 0.08
+    min_consistency: float = 0.7  # free-space supports / (supports + conflicts)
+    min_overlap: float = 0.1  # share of B's cloud on A's surfaces
+    ambiguity: float = 0.9  # a rival with this share of the best score makes it ambiguous
+    rival_m: float = 0.3
+    rival_deg: float = 10.0
+    use_icp: bool = True
+    colour_icp: bool = True
+    try_mlp: bool = True
+
+
+DEFAULT_ALIGN = AlignParams()
+
+
+@dataclass
+class Hypothesis:
+    T_a_b: np.ndarray
+    support: int
+    source: str = "pooled"
+    fitness: float = 0.0  # share of B's cloud within 2 voxels of A's
+    supports: int = 0  # free-space check, both ways
+    conflicts: int = 0
+
+    @property
+    def consistency(self) -> float:
+        return self.supports / max(self.supports + self.conflicts, 1)
+
+    @property
+    def score(self) -> float:
+        """Net agreement: surface points seen where the other robot saw a surface, less
+        those put where the other robot saw empty space."""
+        return float(self.supports - self.conflicts)
+
+    def summary(self) -> dict:
+        return {
+            "source": self.source,
+            "support": self.support,
+            "icp_fitness": round(self.fitness, 4),
+            "consistency": round(self.consistency, 4),
+            "score": round(self.score, 1),
+        }
+
+
+@dataclass
+class AlignResult:
+    """Outcome: merged or not (with the reason), T_a_b maps B's map frame into A's."""
+
+    merged: bool
+    reason: str
+    T_a_b: np.ndarray | None = None
+    method: str = ""
+    correspondences: int = 0
+    inliers: int = 0
+    holdout_m: float = float("nan")
+    fitness: float = 0.0
+    mlp_holdout_m: float | None = None
+    mlp: MLPEstimator | None = field(default=None, repr=False)
+    hypotheses: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        d = {
+            "merged": self.merged,
+            "reason": self.reason,
+            "method": self.method,
+            "correspondences": self.correspondences,
+            "inliers": self.inliers,
+            "holdout_residual_m": _num(self.holdout_m),
+            "icp_fitness": self.fitness,
+            "mlp_holdout_residual_m": _num(self.mlp_holdout_m),
+            "hypotheses": self.hypotheses,
+            "seconds": self.seconds,
+        }
+        if self.T_a_b is not None:
+            d["transform"] = self.T_a_b.tolist()
+        if self.mlp is not None:
+            d["affine"] = self.mlp.affine_.tolist()
+        return d
+
+    def map_points(self, points_b: np.ndarray) -> np.ndarray:
+        """B's map points into A's frame with the chosen model."""
+        if self.mlp is not None:
+            return self.mlp.transform(points_b)
+        return apply(self.T_a_b, points_b)
+
+
+def _num(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def _num(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def unique_views(pairs, side: int) -> list:
+    """The distinct views (by identity) of one side (0: robot A, 1: robot B) of the pairs."""
+    seen, out = set(), []
+    for pr in pairs:
+        v = pr[side]
+        if id(v) not in seen:
+            seen.add(id(v))
+            out.append(v)
+    return out

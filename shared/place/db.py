@@ -1,0 +1,379 @@
+"""The place database: a store (durable state), the in-memory place index, the overlap
+worker and the codebook's retraining, composed.
+
+On start the index is rebuilt from the store's small per-keyframe columns (GIST and BoW);
+full frames (local features) stay in storage until a candidate needs them. Overlaps between
+robots are found incrementally: each new keyframe is queued, and the worker runs the cascade
+against the other robots' keyframes and records the verified winner per robot. Keyframes
+not yet processed when the process stopped are queued again on start, so a crash loses no
+overlap either.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fleetmap.errors import BadInput, Conflict, UnknownKeyframe, UnknownRobot
+from fleetmap.frame import Frame, check_robot_id, decode
+from fleetmap.geometry import check_transform
+from fleetmap.place.cascade import run_cascade
+from fleetmap.place.index import PlaceIndex
+from fleetmap.place.links import LinkOverlaps, pair_link_rows
+from fleetmap.place.sqlite import SQLiteStore
+from fleetmap.place.store import Pending, Store
+from fleetmap.place.types import (
+    DEFAULT_CASCADE,
+    CascadeParams,
+    CascadeResult,
+    Filter,
+    Overlap,
+    RetrainPolicy,
+)
+from fleetmap.place.worker import OverlapWorker
+from fleetmap.vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+
+
+class PlaceDB:
+    """Keyframes of a fleet, their place index and the overlaps found between robots.
+
+    `store` is a path (SQLite, the embedded default) or a `Store`."""
+
+    def __init__(
+        self,
+        store: str | Path | Store,
+        vocabulary: Vocabulary,
+        params: CascadeParams = DEFAULT_CASCADE,
+        retrain: RetrainPolicy | None = None,
+        background: bool = True,
+    ):
+        if isinstance(store, str | Path):
+            store = SQLiteStore(store, vocabulary.vocab_id)
+        self.store = store
+        self.path = getattr(store, "path", None)
+        self.vocabulary = vocabulary
+        self.params = params
+        self.retrain_policy = retrain or RetrainPolicy()
+        self._retraining = threading.Lock()
+        self._closed = False
+        book = store.codebook()
+        self.index = PlaceIndex(
+            vocabulary.gist_centroids if book is None else book, vocabulary.n_words
+        )
+        self.worker = OverlapWorker(self.process)
+        self._links = LinkOverlaps(store, self.load_frame)
+        self._load()
+        if background:
+            self.worker.start()
+
+    def _load(self) -> None:
+        t, pending = time.perf_counter(), []
+        for rows in self.store.index_rows():
+            self.index.add_many(
+                rows.ids, rows.robots, rows.stamps, rows.gists, rows.bow_ids, rows.bow_counts
+            )
+            pending += rows.unprocessed
+        for kf in pending:
+            self.worker.put(kf)
+        log.info(
+            "place index rebuilt: %d keyframes of %d robots in %.1f s (%d to process)",
+            len(self.index),
+            self.store.robot_count(),
+            time.perf_counter() - t,
+            len(pending),
+        )
+
+    @property
+    def startup_warning(self) -> str:
+        return self.store.startup_warning
+
+    def _code(self, name: str) -> int:
+        code = self.store.robot_code(name)
+        if code is None:
+            raise UnknownRobot(f"Unknown robot {name!r}")
+        return code
+
+    # --- keyframes ------------------------------------------------------------------
+
+    def add_keyframe(self, robot_id: str, data: bytes) -> tuple[int, bool]:
+        """Store one encoded frame for robot_id; returns (keyframe id, newly created).
+
+        Re-sending the identical frame is idempotent; a different frame at the same
+        stamp is a Conflict. Returns only once the keyframe is durably committed.
+        """
+        return self.add_keyframes(robot_id, [data])[0]
+
+    def add_keyframes(self, robot_id: str, datas: list[bytes]) -> list[tuple[int, bool]]:
+        """Store encoded frames of one robot durably; returns (id, created) for each."""
+        check_robot_id(robot_id)
+        items = [Pending(robot_id, self._check(robot_id, d), bytes(d)) for d in datas]
+        self.store.add_frames(items, self._committed)
+        for it in items:
+            if it.error is not None:
+                raise it.error
+        return [it.result for it in items]
+
+    def _check(self, robot_id: str, data: bytes) -> Frame:
+        frame = decode(data)
+        if frame.robot_id != robot_id:
+            raise BadInput(f"Frame is of robot {frame.robot_id!r}, posted for {robot_id!r}")
+        self._check_vocabulary(frame)
+        if len(frame.gist) != self.index.dim:
+            raise BadInput(f"Expected a GIST of {self.index.dim} values, got {len(frame.gist)}")
+        if len(frame.bow_ids) and int(frame.bow_ids.max()) >= self.vocabulary.n_words:
+            raise BadInput(
+                f"BoW word id {int(frame.bow_ids.max())} outside the "
+                f"{self.vocabulary.n_words}-word vocabulary"
+            )
+        return frame
+
+    def _check_vocabulary(self, frame: Frame) -> None:
+        if frame.vocab_id != self.vocabulary.vocab_id:
+            raise BadInput(
+                f"Frame BoW is over vocabulary {frame.vocab_id!r}, this database "
+                f"uses {self.vocabulary.vocab_id!r}"
+            )
+
+    def _committed(self, added: list[Pending]) -> None:
+        """Newly stored keyframes: into the index, then the worker's queue."""
+        self.index.add_many(
+            [it.result[0] for it in added],
+            [self.store.robot_code(it.robot_id) for it in added],
+            [it.frame.stamp for it in added],
+            np.stack([it.frame.gist for it in added]),
+            [it.frame.bow_ids for it in added],
+            [it.frame.bow_counts for it in added],
+        )
+        for it in added:
+            self.worker.put(it.result[0])
+        self._maybe_retrain(len(added))
+
+    def frame_bytes(self, kf_id: int) -> bytes:
+        """The stored encoded frame of a keyframe."""
+        return self.store.frame_bytes(kf_id)
+
+    def load_frame(self, kf_id: int) -> Frame:
+        """The full stored frame of a keyframe (local features included)."""
+        return decode(self.store.frame_bytes(kf_id))
+
+    def keyframe_info(self, kf_id: int) -> dict:
+        return self.store.keyframe_info(kf_id)
+
+    # --- queries --------------------------------------------------------------------
+
+    def robot_name(self, code: int) -> str | None:
+        """The robot's name; None once it has been deleted (a query may race a delete)."""
+        return self.store.robot_name(code)
+
+    def robots(self) -> list[dict]:
+        return self.store.robots()
+
+    def keyframes(self, robot_id: str, offset: int = 0, limit: int = 1000) -> list[dict]:
+        return self.store.keyframes(self._code(robot_id), offset, limit)
+
+    def make_filter(
+        self, robot: str | None = None, exclude_robot: str | None = None, max_stamp=None
+    ) -> Filter:
+        excluded = None if exclude_robot is None else self.store.robot_code(exclude_robot)
+        return Filter(
+            robots=None if robot is None else {self._code(robot)},
+            exclude_robots=set() if excluded is None else {excluded},
+            max_stamp=max_stamp,
+        )
+
+    def query(self, frame: Frame, flt: Filter | None = None) -> CascadeResult:
+        """The cascade's answer for one frame against the stored keyframes."""
+        self._check_vocabulary(frame)
+        return run_cascade(frame, self.index, self.load_frame, self.params, flt)
+
+    def overlaps(self, robot_a: str, robot_b: str) -> list[Overlap]:
+        """Verified keyframe pairs between two robots, oriented a -> b, by stamp of a."""
+        ra, rb = self._code(robot_a), self._code(robot_b)
+        out = []
+        for r in self.store.overlap_rows(ra, rb):
+            ka, sa, kb, sb = r.kf_a, r.stamp_a, r.kf_b, r.stamp_b
+            if r.robot_a != ra:
+                ka, sa, kb, sb = kb, sb, ka, sa
+            out.append(Overlap(robot_a, ka, sa, robot_b, kb, sb, r.inliers, r.matches, r.source))
+        return sorted(out, key=lambda o: (o.stamp_a, o.stamp_b))
+
+    def overlap_graph(self) -> list[dict]:
+        """Every robot pair with verified overlaps: count, best and total inliers."""
+        merged: dict[tuple[str, str], list[int]] = {}
+        for ra, rb, n, best, total in self.store.overlap_counts():
+            names = self.store.robot_name(ra), self.store.robot_name(rb)
+            if None in names:
+                continue  # deleted meanwhile
+            acc = merged.setdefault(tuple(sorted(names)), [0, 0, 0])
+            acc[0], acc[1], acc[2] = acc[0] + n, max(acc[1], best), acc[2] + total
+        return [
+            {"robot_a": a, "robot_b": b, "pairs": n, "best_inliers": best, "total_inliers": total}
+            for (a, b), (n, best, total) in sorted(merged.items())
+        ]
+
+    def pending(self) -> int:
+        """Keyframes still waiting for overlap detection."""
+        return self.worker.pending()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until every queued keyframe is processed; False on timeout."""
+        return self.worker.wait_idle(timeout)
+
+    def ping(self) -> bool:
+        """The storage answers a trivial read."""
+        return self.store.ping()
+
+    def stats(self) -> dict:
+        sizes = self.index.cluster_sizes()
+        return {
+            "keyframes": len(self.index),
+            "robots": self.store.robot_count(),
+            "pending": self.pending(),
+            "clusters": int(len(sizes)),
+            "cluster_mean": float(sizes.mean()) if len(sizes) else 0.0,
+            "cluster_max": int(sizes.max()) if len(sizes) else 0,
+            "nonempty_clusters": int(np.count_nonzero(sizes)),
+            "overlaps": self.store.overlap_total(),
+            "vocab_id": self.vocabulary.vocab_id,
+            "db_path": str(self.path),
+            "db_bytes": self.store.size_bytes(),
+            "storage_errors": self.store.storage_errors,
+            "worker_failures": self.worker.failures,
+            "parked": dict(self.worker.parked),
+            "startup_warning": self.startup_warning,
+        }
+
+    # --- administration --------------------------------------------------------------
+
+    def delete_robot(self, robot_id: str) -> int:
+        """Delete a robot, its keyframes and its overlaps; returns keyframes removed."""
+        return self.store.delete_robot(self._code(robot_id), self.index.remove)
+
+    def retrain(self, n_clusters: int | None = None) -> dict:
+        """k-means the coarse codebook anew from the stored GISTs and swap the index in;
+        queries and ingest go on meanwhile (thesis Fig. 2.12: uneven clusters)."""
+        if not self._retraining.acquire(blocking=False):
+            raise Conflict("A retraining is already running")
+        try:
+            t = time.perf_counter()
+            k = n_clusters or self.retrain_policy.target_clusters(len(self.index))
+            sizes = self.index.retrain(k)
+            self.store.save_codebook(self.index.codebook)
+            info = {
+                "clusters": int(len(sizes)),
+                "keyframes": int(sizes.sum()),
+                "cluster_max": int(sizes.max()),
+                "cluster_mean": float(sizes.mean()),
+                "seconds": time.perf_counter() - t,
+            }
+            log.info("codebook retrained: %s", info)
+            return info
+        finally:
+            self._retraining.release()
+
+    def needs_retrain(self) -> bool:
+        p, n = self.retrain_policy, len(self.index)
+        if not p.enabled or n < p.min_keyframes:
+            return False
+        sizes = self.index.cluster_sizes()
+        mean = max(float(sizes.mean()), 1e-9)
+        return mean > p.max_mean_list or sizes.max() > p.max_imbalance * mean
+
+    def _maybe_retrain(self, added: int = 1) -> None:
+        if len(self.index) % 500 >= added or self._retraining.locked():
+            return  # check every 500 keyframes
+        if self.needs_retrain():
+            threading.Thread(target=self._retrain_quietly, daemon=True).start()
+
+    def _retrain_quietly(self) -> None:
+        try:
+            self.retrain()
+        except Conflict:
+            pass
+        except Exception:
+            log.exception("background codebook retraining failed")
+
+    # --- links: map alignments registered by the aligner --------------------------------
+
+    def add_link(self, robot_a: str, robot_b: str, T_a_b: np.ndarray) -> int:
+        """Register a map alignment (B's map frame into A's, from a gated aligner result)
+        and record, as overlaps with source "link", each keyframe's most co-visible
+        keyframe of the other robot under it (`fleetmap.place.links`). Replaces the pair's
+        earlier link. Returns the number of link overlaps recorded."""
+        T = check_transform(T_a_b, "A link's transform")
+        if robot_a == robot_b:
+            raise BadInput("A link joins two different robots")
+        ra, rb = self._code(robot_a), self._code(robot_b)
+        if ra > rb:  # one row per robot pair
+            ra, rb, T = rb, ra, np.linalg.inv(T)
+        rows = pair_link_rows(self.store, self.load_frame, ra, rb, T)
+        n = self.store.put_link(ra, rb, T, rows)
+        log.info("link %s-%s registered: %d co-visible keyframe pairs", robot_a, robot_b, n)
+        return n
+
+    def links(self) -> list[dict]:
+        """Registered map alignments: {robot_a, robot_b, transform (B into A), created}."""
+        out = []
+        for a, b, T, created in self.store.links():
+            names = self.store.robot_name(a), self.store.robot_name(b)
+            if None not in names:
+                out.append(
+                    {"robot_a": names[0], "robot_b": names[1], "transform": T.tolist()}
+                    | {"created": created}
+                )
+        return out
+
+    # --- overlap worker ---------------------------------------------------------------
+
+    def process(self, kf_id: int) -> list[Overlap]:
+        """Find and record this keyframe's verified winner in each other robot."""
+        try:
+            frame = self.load_frame(kf_id)
+        except UnknownKeyframe:
+            return []  # deleted meanwhile
+        code = self.store.robot_code(frame.robot_id)
+        if code is None:
+            return []
+        flt = Filter(exclude_robots={code})
+        result = run_cascade(frame, self.index, self.load_frame, self.params, flt)
+        best = {}
+        for c in result.verified:  # most inliers first: the first per robot wins
+            best.setdefault(c.robot, c)
+        winners = [
+            (c.kf_id, c.robot, c.verification.inliers, c.verification.matches)
+            for c in best.values()
+        ]
+        links = self._links.for_keyframe(kf_id, frame, code)
+        if not self.store.record_overlaps(kf_id, code, winners, links):
+            return []  # a keyframe was deleted meanwhile
+        return [
+            Overlap(
+                frame.robot_id,
+                kf_id,
+                frame.stamp,
+                self.store.robot_name(c.robot) or "?",
+                c.kf_id,
+                c.stamp,
+                c.verification.inliers,
+                c.verification.matches,
+            )
+            for c in best.values()
+        ]
+
+    def process_pending(self) -> None:
+        """Synchronously process queued keyframes (for use without the background worker)."""
+        self.worker.process_pending()
+
+    def close(self, drain_timeout: float = 10.0) -> None:
+        """Refuse new writes, let the worker finish the keyframe it is on (at most
+        `drain_timeout`; unprocessed keyframes are queued again at the next start), then
+        close the store cleanly."""
+        self.store.refuse_writes()
+        self.worker.stop(drain_timeout)
+        self.store.close()
