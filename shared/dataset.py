@@ -139,22 +139,37 @@ def read_recording(
     rgb = read_list(root / "rgb.txt")
     if not rgb:
         raise BadRobotData(f"{root / 'rgb.txt'} lists no frames")
-    rgb_t = np.array([r[0] for r in rgb])
     has_depth = (root / "depth.txt").is_file()
     if require_depth and not has_depth:
         raise BadRobotData(f"Missing file: {root / 'depth.txt'}")
-    depth = read_list(root / "depth.txt") if has_depth else []
-    depth_t = np.array([r[0] for r in depth])
+    depth = read_list(root / "depth.txt") if has_depth else None
     gt = root / "groundtruth.txt"
     if require_poses and not gt.is_file():
         raise BadRobotData(f"Missing file: {gt}")
     pose_t, poses = _read_poses(gt) if gt.is_file() else (np.array([]), [])
 
-    d_of = dict(associate(rgb_t, depth_t, MAX_ASSOCIATION_GAP_S)) if has_depth else {}
+    frames = _associated(root, rgb, depth, pose_t, poses)
+    if not frames:
+        raise BadRobotData(
+            f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
+        )
+    log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
+    return Recording(robot_id=robot_id, root=root, intrinsics=intrinsics, frames=frames)
+
+
+def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> list[FrameRecord]:
+    """Colour frames with their depth frame (where the folder has depth) and pose (where it
+    has poses) within MAX_ASSOCIATION_GAP_S."""
+    rgb_t = np.array([r[0] for r in rgb])
+    d_of = (
+        {}
+        if depth is None
+        else dict(associate(rgb_t, np.array([r[0] for r in depth]), MAX_ASSOCIATION_GAP_S))
+    )
     p_of = dict(associate(rgb_t, pose_t, MAX_ASSOCIATION_GAP_S)) if len(poses) else {}
     frames = []
     for i, (stamp, vals) in enumerate(rgb):
-        if has_depth and i not in d_of or len(poses) and i not in p_of:
+        if depth is not None and i not in d_of or len(poses) and i not in p_of:
             continue
         if not vals:
             raise BadRobotData(f"{root / 'rgb.txt'}: no file name at t={stamp}")
@@ -162,16 +177,11 @@ def read_recording(
             FrameRecord(
                 stamp=stamp,
                 rgb_path=_resolve(root, vals[0]),
-                depth_path=_resolve(root, depth[d_of[i]][1][0]) if has_depth else None,
+                depth_path=None if depth is None else _resolve(root, depth[d_of[i]][1][0]),
                 T_map_cam=poses[p_of[i]] if len(poses) else None,
             )
         )
-    if not frames:
-        raise BadRobotData(
-            f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
-        )
-    log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
-    return Recording(robot_id=robot_id, root=root, intrinsics=intrinsics, frames=frames)
+    return frames
 
 
 def load_rgb(path: Path) -> np.ndarray:

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+import fleetmap.place.sqlite_files as files
 from fleetmap.errors import Conflict, StorageCorrupt, Unavailable, UnknownKeyframe
-from fleetmap.place import sqlite_files as files
 from fleetmap.place.store import IndexRows, LinkRow, OverlapRow, Pending, WinnerRow
 
 log = logging.getLogger(__name__)

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 
 from fleetmap.geometry import pose_from_tum, transform_error
-from fleetmap.services.cli import main
 from fleetmap.placement import spanning_placement
+from fleetmap.services.cli import main
 
 PLY_ROW = np.dtype(
     [
