@@ -126,6 +126,20 @@ def cmd_vocab_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings(cls, **overrides):
+    """A service's settings; an unreadable environment variable is one line naming it."""
+    from pydantic import ValidationError
+
+    from fleetmap.errors import BadInput
+
+    try:
+        return cls(**overrides)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = "__".join(str(p) for p in err["loc"]).upper()
+        raise BadInput(f"setting {where}: {err['msg']} (got {err.get('input')!r})") from None
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     """Run one service in the foreground until SIGTERM/SIGINT."""
     import uvicorn
@@ -138,14 +152,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
         from fleetmap.services.place_db.main import create_app
 
         overrides = {"data_dir": Path(args.data_dir)} if args.data_dir else {}
-        settings = Settings(**overrides)
+        settings = _settings(Settings, **overrides)
         check_database_file(settings.db_path)  # a damaged file: one line, exit 1
         app = create_app(settings)
     else:
         from fleetmap.services.aligner.config import Settings as AlignerSettings
         from fleetmap.services.aligner.main import create_app as create_aligner
 
-        app = create_aligner(AlignerSettings())
+        app = create_aligner(_settings(AlignerSettings))
     port = args.port or (8100 if args.service == "place-db" else 8200)
     from fleetmap.services.common import auth_summary
 

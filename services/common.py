@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import hmac
 import logging
+import os
 import re
 import time
 import uuid
@@ -340,3 +341,15 @@ def header_timeout_protocol(timeout_s: float = 10.0):
             super().connection_lost(exc)
 
     return HeaderTimeoutH11
+
+
+def refuse_flat_names(prefix: str, params_class, nested: str, renamed=()) -> None:
+    """Parameters are nested settings now (PREFIX_ALIGN__MIN_INLIERS); a variable of the
+    old flat form (PREFIX_MIN_INLIERS) is refused with its new name, never ignored."""
+    import dataclasses
+
+    names = [(f.name, f.name) for f in dataclasses.fields(params_class)] + list(renamed)
+    for was, now in names:
+        old = f"{prefix}{was.upper()}"
+        if old in os.environ:
+            raise BadInput(f"{old} is no longer read: set {prefix}{nested}__{now.upper()} instead")

@@ -20,7 +20,7 @@ from fleetmap.geometry import apply, check_transform
 from fleetmap.matching import MatchParams, match_descriptors_at, verify_pair
 
 ALIGN_FEATURES = FeatureParams(max_features=1000, min_mser_features=400)
-ALIGN_MATCH = MatchParams(ratio=0.85, min_inliers=8, min_inlier_ratio=0.0)
+ALIGN_MATCH = MatchParams(ratio=0.85, min_epipolar_inliers=8, min_inlier_ratio=0.0)
 
 
 @dataclass

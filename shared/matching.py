@@ -2,7 +2,7 @@
 
 Matches pass Lowe's ratio test and a mutual-nearest check; with N > 8 matches a
 fundamental matrix is fitted by OpenCV's USAC (MAGSAC++) and its inliers counted. Eight
-points always fit some F, so a verified pair also needs `min_inliers` inliers and an inlier
+points always fit some F, so a verified pair also needs `min_epipolar_inliers` inliers and an inlier
 ratio: that is what keeps look-alike corridors from producing false winners.
 """
 
@@ -23,7 +23,7 @@ class MatchParams:
     min_matches: int = 9
     ransac_px: float = 2.0
     confidence: float = 0.999
-    min_inliers: int = 20
+    min_epipolar_inliers: int = 20
     min_inlier_ratio: float = 0.3
     # With depth on both sides: fewer epipolar inliers suffice when enough of them also
     # agree with one rigid motion of their 3D points (a test random matches fail).
@@ -121,7 +121,7 @@ def verify_pair(
         return Verification(n, 0, ia, ib, False, *ms)
     inl = mask.ravel().astype(bool)
     k = int(inl.sum())
-    ok = k >= params.min_inliers and k >= params.min_inlier_ratio * n
+    ok = k >= params.min_epipolar_inliers and k >= params.min_inlier_ratio * n
     rigid = -1
     if points_a is not None and points_b is not None and k >= params.min_inliers_3d_check:
         rigid = _rigid_support(ia[inl], ib[inl], points_a, points_b, params.rigid_tol_m)

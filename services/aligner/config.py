@@ -5,14 +5,13 @@ from __future__ import annotations
 from pydantic import SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from fleetmap.align import AlignParams
-
-_P = AlignParams()
+from fleetmap.align.types import AlignParams
+from fleetmap.services.common import refuse_flat_names
 
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(
-        env_prefix="FLEETMAP_ALIGNER_", env_file=".env", extra="ignore"
+        env_prefix="FLEETMAP_ALIGNER_", env_nested_delimiter="__", env_file=".env", extra="ignore"
     )
 
     # access control: none configured = open (logged at start-up)
@@ -27,27 +26,9 @@ class Settings(BaseSettings):
     max_pairs: int = 512
     max_image_pixels: int = 4096 * 4096
     cloud_cache: int = 8  # merged clouds kept for GET /clouds/{id}
-    ransac_tol_m: float = _P.ransac_tol_m
-    min_inliers: int = _P.min_inliers
-    min_spread_m: float = _P.min_spread_m
-    max_holdout_m: float = _P.max_holdout_m
-    voxel_m: float = _P.voxel_m
-    coarse_voxel_m: float = _P.coarse_voxel_m
-    min_consistency: float = _P.min_consistency
-    min_overlap: float = _P.min_overlap
-    ambiguity: float = _P.ambiguity
-    colour_icp: bool = _P.colour_icp
+    # the alignment's parameters, nested: FLEETMAP_ALIGNER_ALIGN__MIN_INLIERS=20
+    align: AlignParams = AlignParams()
 
-    def params(self) -> AlignParams:
-        return AlignParams(
-            ransac_tol_m=self.ransac_tol_m,
-            min_inliers=self.min_inliers,
-            min_spread_m=self.min_spread_m,
-            max_holdout_m=self.max_holdout_m,
-            voxel_m=self.voxel_m,
-            coarse_voxel_m=self.coarse_voxel_m,
-            min_consistency=self.min_consistency,
-            min_overlap=self.min_overlap,
-            ambiguity=self.ambiguity,
-            colour_icp=self.colour_icp,
-        )
+    def __init__(self, **values):
+        refuse_flat_names("FLEETMAP_ALIGNER_", AlignParams, "ALIGN")
+        super().__init__(**values)

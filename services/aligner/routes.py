@@ -177,7 +177,7 @@ async def align(request: Request) -> s.AlignAnswer:
             pairs = await run_in_threadpool(_views, files, meta)
             del files
             result, cloud = await run_in_threadpool(
-                align_request, pairs, meta.method, st.params(), meta.cloud, meta.colour
+                align_request, pairs, meta.method, st.align, meta.cloud, meta.colour
             )
     answer = s.AlignAnswer(**result)
     if cloud is not None:

@@ -9,9 +9,9 @@ from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.frame import MAX_FRAME_BYTES
-from fleetmap.place import DEFAULT_CASCADE as _C
-
-_M = _C.match
+from fleetmap.matching import MatchParams
+from fleetmap.place import CascadeParams
+from fleetmap.services.common import refuse_flat_names
 
 
 def default_data_dir() -> Path:
@@ -21,7 +21,7 @@ def default_data_dir() -> Path:
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(
-        env_prefix="FLEETMAP_PLACE_DB_", env_file=".env", extra="ignore"
+        env_prefix="FLEETMAP_PLACE_DB_", env_nested_delimiter="__", env_file=".env", extra="ignore"
     )
 
     data_dir: Path = Field(default_factory=default_data_dir)
@@ -31,21 +31,22 @@ class Settings(BaseSettings):
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = MAX_FRAME_BYTES
-    # cascade (thesis Algorithm 3); defaults from fleetmap.place.types / fleetmap.matching
-    m_clusters: int = _C.m_clusters
-    gist_threshold: float = _C.gist_threshold
-    max_candidates: int = _C.max_candidates
-    bow_threshold: float = _C.bow_threshold
-    max_verify: int = _C.max_verify
-    max_verify_per_robot: int = _C.max_verify_per_robot
-    ratio: float = _M.ratio
-    min_inliers: int = _M.min_inliers
-    min_inlier_ratio: float = _M.min_inlier_ratio
-    min_inliers_3d_check: int = _M.min_inliers_3d_check
-    min_rigid_inliers: int = _M.min_rigid_inliers
+    # the cascade's parameters (thesis Algorithm 3), nested:
+    # FLEETMAP_PLACE_DB_CASCADE__GIST_THRESHOLD=0.7, FLEETMAP_PLACE_DB_CASCADE__MATCH__RATIO=0.8
+    cascade: CascadeParams = CascadeParams()
     # coarse codebook upkeep
     auto_retrain: bool = True
     background_overlaps: bool = True
+
+    def __init__(self, **values):
+        refuse_flat_names("FLEETMAP_PLACE_DB_", CascadeParams, "CASCADE")
+        refuse_flat_names(
+            "FLEETMAP_PLACE_DB_",
+            MatchParams,
+            "CASCADE__MATCH",
+            renamed=[("min_inliers", "min_epipolar_inliers")],
+        )
+        super().__init__(**values)
 
     @property
     def db_path(self) -> Path:

@@ -7,32 +7,13 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from fleetmap.matching import MatchParams
-from fleetmap.place import CascadeParams, PlaceDB, RetrainPolicy
+from fleetmap.place import PlaceDB, RetrainPolicy
 from fleetmap.services import common
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.routes import router
 from fleetmap.vocabulary import load_vocabulary
 
 log = logging.getLogger(__name__)
-
-
-def cascade_params(st: Settings) -> CascadeParams:
-    return CascadeParams(
-        m_clusters=st.m_clusters,
-        gist_threshold=st.gist_threshold,
-        max_candidates=st.max_candidates,
-        bow_threshold=st.bow_threshold,
-        max_verify=st.max_verify,
-        max_verify_per_robot=st.max_verify_per_robot,
-        match=MatchParams(
-            ratio=st.ratio,
-            min_inliers=st.min_inliers,
-            min_inlier_ratio=st.min_inlier_ratio,
-            min_inliers_3d_check=st.min_inliers_3d_check,
-            min_rigid_inliers=st.min_rigid_inliers,
-        ),
-    )
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -44,7 +25,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.db = PlaceDB(
             settings.db_path,
             vocab,
-            cascade_params(settings),
+            settings.cascade,
             RetrainPolicy(enabled=settings.auto_retrain),
             background=settings.background_overlaps,
         )
