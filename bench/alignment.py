@@ -26,8 +26,8 @@ import numpy as np
 import open3d as o3d
 
 from fleetmap.align import select_model
-from fleetmap.estimators import MLPEstimator, fit_affine
-from fleetmap.registration import kabsch
+from fleetmap.estimators import MLPEstimator
+from fleetmap.registration import fit_affine, kabsch
 
 ROOT = Path(__file__).resolve().parents[1]
 PLY = ROOT.parent / "shared/data/laurana/Laurana50k.ply"

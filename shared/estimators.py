@@ -20,7 +20,7 @@ import numpy as np
 
 from fleetmap.errors import BadInput, NotEnoughCorrespondences
 from fleetmap.lazy import LazyModule
-from fleetmap.registration import kabsch
+from fleetmap.registration import MODELS, fit_affine, ransac
 
 torch = LazyModule("torch")  # only the MLP needs it
 
@@ -43,15 +43,6 @@ def _check_xy(X: np.ndarray, Y: np.ndarray, minimum: int) -> tuple[np.ndarray, n
     return X, Y
 
 
-def fit_affine(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Least-squares affine 4x4 with Y ~ A X + t."""
-    Xh = np.hstack([X, np.ones((len(X), 1))])
-    M, *_ = np.linalg.lstsq(Xh, Y, rcond=None)
-    T = np.eye(4)
-    T[:3, :] = M.T
-    return T
-
-
 class _ClosedForm:
     """Closed-form model in RANSAC: minimal samples, inliers by distance, LS refit."""
 
@@ -66,7 +57,7 @@ class _ClosedForm:
         self.random_state = random_state
 
     def _fit(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        return MODELS[self.model][1](X, Y)
 
     def fit(self, X: np.ndarray, Y: np.ndarray):
         X, Y = _check_xy(X, Y, self.min_points)
@@ -75,26 +66,9 @@ class _ClosedForm:
         if thr is None:  # robust default: from the spread of a first all-points fit
             r = np.linalg.norm(self._apply(self._fit(X, Y), X) - Y, axis=1)
             thr = max(3.0 * 1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-9)
-        rng = np.random.default_rng(self.random_state)
-        best = np.zeros(len(X), bool)
-        trials = self.max_trials if len(X) > self.sample_size else 1
-        for _ in range(trials):
-            idx = rng.choice(len(X), self.sample_size, replace=False)
-            try:
-                T = self._fit(X[idx], Y[idx])
-            except (np.linalg.LinAlgError, BadInput, NotEnoughCorrespondences):
-                continue
-            inl = np.linalg.norm(self._apply(T, X) - Y, axis=1) < thr
-            if inl.sum() > best.sum():
-                best = inl
-                if best.mean() > 0.99:
-                    break
+        T, best = ransac(X, Y, thr, self.model, self.max_trials, self.random_state)
         if best.sum() < self.min_points:
             raise NotEnoughCorrespondences(f"RANSAC found {int(best.sum())} inliers")
-        T = self._fit(X[best], Y[best])
-        inl = np.linalg.norm(self._apply(T, X) - Y, axis=1) < thr
-        if inl.sum() >= best.sum():
-            best, T = inl, self._fit(X[inl], Y[inl])
         self.T_, self.inliers_, self.threshold_ = T, best, thr
         self.fit_seconds_ = time.perf_counter() - t0
         return self
@@ -117,25 +91,21 @@ class _ClosedForm:
 class RigidEstimator(_ClosedForm):
     """Rotation and translation (Kabsch) in RANSAC."""
 
-    def _fit(self, X, Y):
-        return kabsch(X, Y)
+    model = "rigid"
 
 
 class SimilarityEstimator(_ClosedForm):
     """Rotation, translation and one scale (Umeyama) in RANSAC."""
 
-    def _fit(self, X, Y):
-        return kabsch(X, Y, scale=True)
+    model = "similarity"
 
 
 class AffineEstimator(_ClosedForm):
     """General affine map (least squares) in RANSAC."""
 
+    model = "affine"
     sample_size = 4
     min_points = 4
-
-    def _fit(self, X, Y):
-        return fit_affine(X, Y)
 
 
 class _Whitener:

@@ -35,17 +35,121 @@ def kabsch(
     return T
 
 
-def _batch_kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid fits of shape (H, 3, 3) and (H, 3) for H minimal samples of shape (H, 3, 3)."""
+def fit_affine(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Least-squares affine 4x4 with Y ~ A X + t."""
+    Xh = np.hstack([X, np.ones((len(X), 1))])
+    M, *_ = np.linalg.lstsq(Xh, Y, rcond=None)
+    T = np.eye(4)
+    T[:3, :] = M.T
+    return T
+
+
+#: The closed forms RANSAC fits: model name -> (minimal sample size, least-squares fit).
+MODELS = {
+    "rigid": (3, kabsch),
+    "similarity": (3, lambda X, Y: kabsch(X, Y, scale=True)),
+    "affine": (4, fit_affine),
+}
+
+
+def _batch_kabsch(
+    src: np.ndarray, dst: np.ndarray, scale: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid (or similarity) fits of shape (H, 3, 3) and (H, 3) for H minimal samples of
+    shape (H, k, 3)."""
     mu_s, mu_d = src.mean(1), dst.mean(1)
-    H = np.einsum("hni,hnj->hij", src - mu_s[:, None], dst - mu_d[:, None])
-    U, _, Vt = np.linalg.svd(H)
+    cs = src - mu_s[:, None]
+    H = np.einsum("hni,hnj->hij", cs, dst - mu_d[:, None])
+    U, S, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
     d[d == 0] = 1.0
     Vt[:, 2, :] *= d[:, None]
     R = np.einsum("hji,hkj->hik", Vt, U)
+    if scale:  # Umeyama: trace(S D) / variance of the source
+        var = np.maximum((cs**2).sum((1, 2)), 1e-300)
+        R = R * ((S[:, 0] + S[:, 1] + d * S[:, 2]) / var)[:, None, None]
     t = mu_d - np.einsum("hij,hj->hi", R, mu_s)
     return R, t
+
+
+def _minimal_fits(s: np.ndarray, d: np.ndarray, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """Linear parts (H, 3, 3) and translations (H, 3) of the minimal samples' fits."""
+    if model != "affine":
+        return _batch_kabsch(s, d, scale=model == "similarity")
+    A = np.concatenate([s, np.ones(s.shape[:2] + (1,))], 2)  # (H, 4, 4)
+    sol = np.linalg.solve(A, d)  # (H, 4, 3): rows M^T then t
+    return np.transpose(sol[:, :3, :], (0, 2, 1)), sol[:, 3, :]
+
+
+def _samples(n: int, k: int, iterations: int, rng) -> np.ndarray:
+    if k == 3 and n <= 22:  # every triplet: at most 1540
+        idx = np.array(np.triu_indices(n, 1)).T
+        return np.array([(i, j, m) for i, j in idx for m in range(j + 1, n)])
+    return np.stack([rng.choice(n, k, replace=False) for _ in range(iterations)])
+
+
+def _usable(s: np.ndarray, d: np.ndarray, tol: float, model: str, min_spread: float):
+    """Samples worth a fit: not nearly collinear (nor coplanar, for the affine model),
+    and, for a rigid model, with consistent pairwise distances."""
+    area = np.linalg.norm(np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0]), axis=1)
+    ok = area > min_spread
+    if model == "rigid":
+        ds = np.linalg.norm(s[:, [0, 1, 2]] - s[:, [1, 2, 0]], axis=2)
+        dd = np.linalg.norm(d[:, [0, 1, 2]] - d[:, [1, 2, 0]], axis=2)
+        ok &= np.abs(ds - dd).max(1) < 2 * tol
+    if model == "affine":
+        A = np.concatenate([s, np.ones(s.shape[:2] + (1,))], 2)
+        ok &= np.abs(np.linalg.det(A)) > min_spread**2
+    return ok
+
+
+def ransac(
+    src: np.ndarray,
+    dst: np.ndarray,
+    tol: float,
+    model: str = "rigid",
+    iterations: int = 1000,
+    seed: int = 0,
+    min_spread: float = 1e-3,
+) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC over minimal fits of `model` (rigid, similarity: 3 points; affine: 4),
+    scored 256 hypotheses at a time, with an adaptive stop; then a least-squares refit on
+    the inliers, grown once.
+
+    src, dst : ndarray of shape (N, 3), matched points. tol : inlier distance.
+    Returns (T of shape (4, 4) mapping src into dst, inlier mask of shape (N,)); the
+    identity and no inliers when nothing fits. Raises NotEnoughCorrespondences with
+    fewer matches than a sample.
+    """
+    k, fit = MODELS[model]
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    n = len(src)
+    if n < k:
+        raise NotEnoughCorrespondences(f"RANSAC needs {k} correspondences, got {n}")
+    trip = _samples(n, k, iterations, np.random.default_rng(seed))
+    s, d = src[trip], dst[trip]
+    ok = _usable(s, d, tol, model, min_spread)
+    best = np.zeros(n, bool)
+    if ok.any():
+        M, t = _minimal_fits(s[ok], d[ok], model)
+        for lo in range(0, len(M), 256):  # bound memory: 256 hypotheses x N points
+            pred = np.einsum("hij,nj->hni", M[lo : lo + 256], src) + t[lo : lo + 256, None]
+            inl = ((pred - dst[None]) ** 2).sum(2) < tol * tol
+            j = inl.sum(1).argmax()
+            if inl[j].sum() > best.sum():
+                best = inl[j]
+            # adaptive stop: enough samples for a 99.9% chance of one all-inlier sample
+            w = best.sum() / n
+            if w > 0 and lo + 256 >= np.log(1e-3) / np.log(max(1 - w**k, 1e-12)):
+                break
+    if best.sum() < k:
+        return np.eye(4), np.zeros(n, bool)
+    T = fit(src[best], dst[best])
+    inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < tol
+    if inl.sum() >= best.sum():
+        best = inl
+        T = fit(src[best], dst[best])
+    return T, best
 
 
 def ransac_rigid(
@@ -56,46 +160,5 @@ def ransac_rigid(
     seed: int = 0,
     min_spread: float = 1e-3,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC over 3-point rigid fits, then a least-squares refit on the inliers.
-
-    src, dst : ndarray of shape (N, 3), matched points. tol : inlier distance.
-    Returns (T of shape (4, 4) mapping src into dst, inlier mask of shape (N,)).
-    Raises NotEnoughCorrespondences with fewer than 3 matches.
-    """
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    n = len(src)
-    if n < 3:
-        raise NotEnoughCorrespondences(f"RANSAC needs 3 correspondences, got {n}")
-    rng = np.random.default_rng(seed)
-    if n <= 22:  # every triplet: at most 1540
-        idx = np.array(np.triu_indices(n, 1)).T
-        trip = np.array([(i, j, k) for i, j in idx for k in range(j + 1, n)])
-    else:
-        trip = np.stack([rng.choice(n, 3, replace=False) for _ in range(iterations)])
-    s, d = src[trip], dst[trip]
-    # degenerate samples: nearly collinear or inconsistent pairwise distances
-    ds = np.linalg.norm(s[:, [0, 1, 2]] - s[:, [1, 2, 0]], axis=2)
-    dd = np.linalg.norm(d[:, [0, 1, 2]] - d[:, [1, 2, 0]], axis=2)
-    area = np.linalg.norm(np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0]), axis=1)
-    ok = (np.abs(ds - dd).max(1) < 2 * tol) & (area > min_spread)
-    best = np.zeros(n, bool)
-    if ok.any():
-        R, t = _batch_kabsch(s[ok], d[ok])
-        for lo in range(0, len(R), 256):  # bound memory: 256 hypotheses x N points
-            pred = np.einsum("hij,nj->hni", R[lo : lo + 256], src) + t[lo : lo + 256, None]
-            inl = ((pred - dst[None]) ** 2).sum(2) < tol * tol
-            k = inl.sum(1).argmax()
-            if inl[k].sum() > best.sum():
-                best = inl[k]
-            # adaptive stop: enough samples for a 99.9% chance of one all-inlier triplet
-            w = best.sum() / n
-            if w > 0 and lo + 256 >= np.log(1e-3) / np.log(max(1 - w**3, 1e-12)):
-                break
-    if best.sum() < 3:
-        return np.eye(4), np.zeros(n, bool)
-    T = kabsch(src[best], dst[best])
-    inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < tol
-    if inl.sum() >= best.sum():
-        best = inl
-        T = kabsch(src[best], dst[best])
-    return T, best
+    """`ransac` with the rigid model (3-point Kabsch fits)."""
+    return ransac(src, dst, tol, "rigid", iterations, seed, min_spread)

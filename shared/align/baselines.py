@@ -12,10 +12,10 @@ from fleetmap.align.types import METHODS, AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import kfold_residuals
 from fleetmap.correspondences import pooled_correspondences
 from fleetmap.errors import BadInput
-from fleetmap.estimators import MLPEstimator, fit_affine
+from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply
 from fleetmap.mapcloud import REG, icp, views_cloud
-from fleetmap.registration import kabsch
+from fleetmap.registration import MODELS
 
 
 def run_method(pairs, method: str, p: AlignParams) -> AlignResult:
@@ -120,9 +120,7 @@ def fpfh_ransac_icp(views_a, views_b, voxel: float = 0.05, seed: int = 0):
 
 
 def _closed_fit(name: str, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    if name == "affine":
-        return fit_affine(X, Y)
-    return kabsch(X, Y, scale=name == "similarity")
+    return MODELS[name][1](X, Y)
 
 
 def select_model(
