@@ -2,7 +2,8 @@
 # Install fleetmap and its dependencies into ./.venv (Debian, Python 3.11).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-APT_PACKAGES="libusb-1.0-0 libgl1 libgomp1"
+# postgresql-15: the PostgreSQL backend and its tests (a throwaway cluster per test run)
+APT_PACKAGES="libusb-1.0-0 libgl1 libgomp1 postgresql-15"
 missing=$(for p in $APT_PACKAGES; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done)
 if [ -n "$missing" ]; then
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
@@ -16,6 +17,6 @@ command -v "$PY" >/dev/null || PY=python3
 quiet() { grep -v "^WARNING: Location" || true; }
 .venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | quiet
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]" 2>&1 | quiet
-.venv/bin/python -c "import fastapi, cv2, open3d, torch, faiss; import shared, services" \
+.venv/bin/python -c "import fastapi, cv2, open3d, torch, faiss, psycopg; import fleetmap.services.cli" \
   || { echo "install.sh: dependencies failed to import" >&2; exit 1; }
 echo "fleetmap installed in .venv"

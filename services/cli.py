@@ -150,6 +150,12 @@ def _service_commands(sub) -> None:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=None, help="default 8100 / 8200")
     p.add_argument("--data-dir", help="place database storage (default: per-user data folder)")
+    p.add_argument(
+        "--database",
+        metavar="URL",
+        help="place-db on PostgreSQL: postgresql://USER[:PASS]@HOST:PORT/DB, shared by any "
+        "number of replicas (default: $FLEETMAP_PLACE_DB_DATABASE, else SQLite in --data-dir)",
+    )
     p.set_defaults(func=commands.cmd_serve)
 
     p = sub.add_parser("ingest", help="extract robot folders and POST them to the place db")

@@ -152,8 +152,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
         from fleetmap.services.place_db.main import create_app
 
         overrides = {"data_dir": Path(args.data_dir)} if args.data_dir else {}
+        if args.database:
+            overrides["database"] = args.database
         settings = _settings(Settings, **overrides)
-        check_database_file(settings.db_path)  # a damaged file: one line, exit 1
+        if settings.database is None:
+            check_database_file(settings.db_path)  # a damaged file: one line, exit 1
+        else:
+            from fleetmap.place.postgres import check_reachable
+
+            check_reachable(settings.store)  # down or refused: one line, exit 1
         app = create_app(settings)
     else:
         from fleetmap.services.aligner.config import Settings as AlignerSettings

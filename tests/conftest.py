@@ -214,3 +214,22 @@ def tum_two_robots(tum_pairs):
         T_b_w @ read_tum_pose(case / "pose_curr.txt"),
     )
     return [(a, b)], np.linalg.inv(T_b_w)  # T_a_b: A's map is the mocap world
+
+
+@pytest.fixture(scope="session")
+def pg_cluster():
+    """A real PostgreSQL server for the session (skipped only where PostgreSQL 15's
+    binaries are absent; scripts/install.sh installs them)."""
+    from tests import pg
+
+    if not pg.available():
+        pytest.skip(f"PostgreSQL binaries not found in {pg.PG_BIN}")
+    cluster = pg.Cluster().start()
+    yield cluster
+    cluster.remove()
+
+
+@pytest.fixture
+def pg_url(pg_cluster) -> str:
+    """A fresh, empty database on the session's PostgreSQL server."""
+    return pg_cluster.database()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.frame import MAX_FRAME_BYTES
@@ -25,6 +25,9 @@ class Settings(BaseSettings):
     )
 
     data_dir: Path = Field(default_factory=default_data_dir)
+    # postgresql://USER[:PASS]@HOST:PORT/DB: replicas over one database; unset: SQLite in
+    # data_dir (the embedded default)
+    database: SecretStr | None = None
     db_file: str = "place_db.sqlite"
     vocabulary: Path | None = None  # None: the shipped default
     # access control: none configured = open (logged at start-up)
@@ -47,6 +50,18 @@ class Settings(BaseSettings):
             renamed=[("min_inliers", "min_epipolar_inliers")],
         )
         super().__init__(**values)
+
+    @property
+    def store(self) -> str | Path:
+        """What PlaceDB opens: the PostgreSQL URL when one is set, else the SQLite file."""
+        return self.db_path if self.database is None else self.database.get_secret_value()
+
+    @field_validator("database")
+    @classmethod
+    def _postgres_url(cls, v: SecretStr | None) -> SecretStr | None:
+        if v is not None and not v.get_secret_value().startswith(("postgresql://", "postgres://")):
+            raise ValueError("must be a postgresql://USER[:PASS]@HOST:PORT/DB URL")
+        return v
 
     @property
     def db_path(self) -> Path:

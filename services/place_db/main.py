@@ -23,13 +23,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI):
         vocab = load_vocabulary(settings.vocabulary)
         app.state.db = PlaceDB(
-            settings.db_path,
+            settings.store,
             vocab,
             settings.cascade,
             RetrainPolicy(enabled=settings.auto_retrain),
             background=settings.background_overlaps,
         )
-        log.info("place database at %s, vocabulary %s", settings.db_path, vocab.vocab_id)
+        where = app.state.db.stats()["db_path"]
+        log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)
         log.warning("place database: %s", common.auth_summary(settings))
         yield
         app.state.db.close()

@@ -12,18 +12,19 @@ overlap either.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from fleetmap.errors import BadInput, Conflict, UnknownKeyframe, UnknownRobot
+from fleetmap.errors import BadInput, UnknownKeyframe, UnknownRobot
 from fleetmap.frame import Frame, check_robot_id, decode
 from fleetmap.geometry import check_transform
 from fleetmap.place.cascade import run_cascade
 from fleetmap.place.index import PlaceIndex
 from fleetmap.place.links import LinkOverlaps, pair_link_rows
+from fleetmap.place.replica import ClaimWorker, Follower
+from fleetmap.place.retrain import CodebookUpkeep
 from fleetmap.place.sqlite import SQLiteStore
 from fleetmap.place.store import Pending, Store
 from fleetmap.place.types import (
@@ -43,7 +44,8 @@ log = logging.getLogger(__name__)
 class PlaceDB:
     """Keyframes of a fleet, their place index and the overlaps found between robots.
 
-    `store` is a path (SQLite, the embedded default) or a `Store`."""
+    `store` is a path (SQLite, the embedded default), a postgresql:// URL (replicas over
+    one database: `fleetmap.place.postgres`) or a `Store`."""
 
     def __init__(
         self,
@@ -53,27 +55,42 @@ class PlaceDB:
         retrain: RetrainPolicy | None = None,
         background: bool = True,
     ):
-        if isinstance(store, str | Path):
+        if isinstance(store, str) and store.startswith(("postgresql://", "postgres://")):
+            from fleetmap.place.postgres import PostgresStore
+
+            store = PostgresStore(store, vocabulary.vocab_id)
+        elif isinstance(store, str | Path):
             store = SQLiteStore(store, vocabulary.vocab_id)
         self.store = store
         self.path = getattr(store, "path", None)
         self.vocabulary = vocabulary
         self.params = params
         self.retrain_policy = retrain or RetrainPolicy()
-        self._retraining = threading.Lock()
         self._closed = False
         book = store.codebook()
         self.index = PlaceIndex(
             vocabulary.gist_centroids if book is None else book, vocabulary.n_words
         )
-        self.worker = OverlapWorker(self.process)
+        self.shared = getattr(store, "shared", False)
+        self.follower = Follower(store, self.index) if self.shared else None
+        if self.shared:
+            self.worker = ClaimWorker(store, self._claimed)
+        else:
+            self.worker = OverlapWorker(self.process)
         self._links = LinkOverlaps(store, self.load_frame)
+        self.upkeep = CodebookUpkeep(self.retrain_policy, self.index, store, self.follower)
         self._load()
         if background:
             self.worker.start()
+            if self.follower is not None:
+                self.follower.start()
 
     def _load(self) -> None:
         t, pending = time.perf_counter(), []
+        if self.follower is not None:
+            self.follower.catch_up()
+            log.info("place index rebuilt from %s: %d keyframes", self.store.where, len(self.index))
+            return
         for rows in self.store.index_rows():
             self.index.add_many(
                 rows.ids, rows.robots, rows.stamps, rows.gists, rows.bow_ids, rows.bow_counts
@@ -141,7 +158,12 @@ class PlaceDB:
             )
 
     def _committed(self, added: list[Pending]) -> None:
-        """Newly stored keyframes: into the index, then the worker's queue."""
+        """Newly stored keyframes: into the index, then the worker's queue (a shared store:
+        the index catches up with every replica's commits, the queue is the store's)."""
+        if self.follower is not None:
+            self.follower.catch_up()
+            self.upkeep.maybe(len(added))
+            return
         self.index.add_many(
             [it.result[0] for it in added],
             [self.store.robot_code(it.robot_id) for it in added],
@@ -152,7 +174,7 @@ class PlaceDB:
         )
         for it in added:
             self.worker.put(it.result[0])
-        self._maybe_retrain(len(added))
+        self.upkeep.maybe(len(added))
 
     def frame_bytes(self, kf_id: int) -> bytes:
         """The stored encoded frame of a keyframe."""
@@ -241,7 +263,7 @@ class PlaceDB:
             "nonempty_clusters": int(np.count_nonzero(sizes)),
             "overlaps": self.store.overlap_total(),
             "vocab_id": self.vocabulary.vocab_id,
-            "db_path": str(self.path),
+            "db_path": str(self.path) if self.path else f"postgresql://{self.store.where}",
             "db_bytes": self.store.size_bytes(),
             "storage_errors": self.store.storage_errors,
             "worker_failures": self.worker.failures,
@@ -258,46 +280,10 @@ class PlaceDB:
     def retrain(self, n_clusters: int | None = None) -> dict:
         """k-means the coarse codebook anew from the stored GISTs and swap the index in;
         queries and ingest go on meanwhile (thesis Fig. 2.12: uneven clusters)."""
-        if not self._retraining.acquire(blocking=False):
-            raise Conflict("A retraining is already running")
-        try:
-            t = time.perf_counter()
-            k = n_clusters or self.retrain_policy.target_clusters(len(self.index))
-            sizes = self.index.retrain(k)
-            self.store.save_codebook(self.index.codebook)
-            info = {
-                "clusters": int(len(sizes)),
-                "keyframes": int(sizes.sum()),
-                "cluster_max": int(sizes.max()),
-                "cluster_mean": float(sizes.mean()),
-                "seconds": time.perf_counter() - t,
-            }
-            log.info("codebook retrained: %s", info)
-            return info
-        finally:
-            self._retraining.release()
+        return self.upkeep.retrain(n_clusters)
 
     def needs_retrain(self) -> bool:
-        p, n = self.retrain_policy, len(self.index)
-        if not p.enabled or n < p.min_keyframes:
-            return False
-        sizes = self.index.cluster_sizes()
-        mean = max(float(sizes.mean()), 1e-9)
-        return mean > p.max_mean_list or sizes.max() > p.max_imbalance * mean
-
-    def _maybe_retrain(self, added: int = 1) -> None:
-        if len(self.index) % 500 >= added or self._retraining.locked():
-            return  # check every 500 keyframes
-        if self.needs_retrain():
-            threading.Thread(target=self._retrain_quietly, daemon=True).start()
-
-    def _retrain_quietly(self) -> None:
-        try:
-            self.retrain()
-        except Conflict:
-            pass
-        except Exception:
-            log.exception("background codebook retraining failed")
+        return self.upkeep.needed()
 
     # --- links: map alignments registered by the aligner --------------------------------
 
@@ -333,13 +319,32 @@ class PlaceDB:
 
     def process(self, kf_id: int) -> list[Overlap]:
         """Find and record this keyframe's verified winner in each other robot."""
+        found = self._detect(kf_id)
+        if found is None:
+            return []
+        code, winners, links, overlaps = found
+        if not self.store.record_overlaps(kf_id, code, winners, links):
+            return []  # a keyframe was deleted meanwhile
+        return overlaps
+
+    def _claimed(self, kf_id: int) -> tuple | None:
+        """A keyframe claimed from a shared store's queue: detect once the index holds
+        every keyframe committed before it; (code, winners, link rows) to record."""
+        if self.index.last_id < kf_id:
+            self.follower.catch_up()
+        found = self._detect(kf_id)
+        return None if found is None else found[:3]
+
+    def _detect(self, kf_id: int) -> tuple | None:
+        """(robot code, winner rows, link rows, overlaps) of one keyframe: its verified
+        winner in each other robot; None for a keyframe deleted meanwhile."""
         try:
             frame = self.load_frame(kf_id)
         except UnknownKeyframe:
-            return []  # deleted meanwhile
+            return None
         code = self.store.robot_code(frame.robot_id)
         if code is None:
-            return []
+            return None
         flt = Filter(exclude_robots={code})
         result = run_cascade(frame, self.index, self.load_frame, self.params, flt)
         best = {}
@@ -350,9 +355,7 @@ class PlaceDB:
             for c in best.values()
         ]
         links = self._links.for_keyframe(kf_id, frame, code)
-        if not self.store.record_overlaps(kf_id, code, winners, links):
-            return []  # a keyframe was deleted meanwhile
-        return [
+        overlaps = [
             Overlap(
                 frame.robot_id,
                 kf_id,
@@ -365,6 +368,7 @@ class PlaceDB:
             )
             for c in best.values()
         ]
+        return code, winners, links, overlaps
 
     def process_pending(self) -> None:
         """Synchronously process queued keyframes (for use without the background worker)."""
@@ -375,5 +379,7 @@ class PlaceDB:
         `drain_timeout`; unprocessed keyframes are queued again at the next start), then
         close the store cleanly."""
         self.store.refuse_writes()
+        if self.follower is not None:
+            self.follower.stop()
         self.worker.stop(drain_timeout)
         self.store.close()

@@ -147,15 +147,22 @@ class PlaceIndex:
         from fleetmap.vocabulary import kmeans
 
         with self._lock:
+            gists = self.gists.view[self.alive.view].astype(np.float32)
+        if len(gists) < n_clusters:
+            raise BadInput(f"{len(gists)} keyframes cannot make {n_clusters} clusters")
+        return self.set_codebook(kmeans(gists, n_clusters, seed=seed))
+
+    def set_codebook(self, codebook: np.ndarray) -> np.ndarray:
+        """Rebuild the IVF over these coarse centroids and swap it in (queries use the old
+        one meanwhile); returns the new cluster sizes."""
+        with self._lock:
             alive = self.alive.view.copy()
             gists = self.gists.view[alive].astype(np.float32)
             ids = self.ids.view[alive].copy()
-        if len(gists) < n_clusters:
-            raise BadInput(f"{len(gists)} keyframes cannot make {n_clusters} clusters")
-        ivf = self._make_ivf(kmeans(gists, n_clusters, seed=seed))
+        ivf = self._make_ivf(codebook)
         ivf.add_with_ids(gists, ids)
         with self._lock:
-            # keyframes added or removed while training
+            # keyframes added or removed while it was built
             n_before = len(alive)
             late = np.flatnonzero(self.alive.view[n_before:]) + n_before
             if len(late):
@@ -165,6 +172,18 @@ class PlaceIndex:
                 ivf.remove_ids(faiss.IDSelectorBatch(self.ids.view[:n_before][gone]))
             self.ivf = ivf
             return self.cluster_sizes()
+
+    def remove_robot(self, robot: int) -> int:
+        """Tombstone every keyframe of one robot code; returns how many."""
+        with self._lock:
+            slots = np.flatnonzero((self.robots.view == robot) & self.alive.view)
+            return self.remove(self.ids.view[slots])
+
+    @property
+    def last_id(self) -> int:
+        """The largest keyframe id ever added (0 if none)."""
+        with self._lock:
+            return int(self.ids.view[-1]) if self.ids.n else 0
 
     # --- cascade stages -------------------------------------------------------------
 

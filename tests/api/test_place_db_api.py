@@ -25,9 +25,12 @@ def frames(sun3d, vocabulary):
     }
 
 
-@pytest.fixture
-def settings(tmp_path):
-    return Settings(data_dir=tmp_path, max_body_bytes=200_000)
+@pytest.fixture(params=["sqlite", "postgres"])
+def settings(request, tmp_path):
+    """Every test here runs on both backends: SQLite in a folder, and a fresh database on a
+    real PostgreSQL server."""
+    database = request.getfixturevalue("pg_url") if request.param == "postgres" else None
+    return Settings(data_dir=tmp_path, max_body_bytes=200_000, database=database)
 
 
 @pytest.fixture

@@ -1,0 +1,185 @@
+"""The PostgreSQL schema of the place database and the statements that write it (each
+called inside a transaction of `fleetmap.place.postgres.PostgresStore`)."""
+
+from __future__ import annotations
+
+import time
+from urllib.parse import urlsplit
+
+import numpy as np
+
+from fleetmap.errors import BadInput, Conflict
+from fleetmap.place.store import LinkRow, Pending, WinnerRow
+
+SCHEMA_VERSION = 1
+#: advisory lock keys, one per job only one replica may do at a time
+LOCKS = {
+    "schema": 0x464D_0001,
+    "ingest": 0x464D_0002,  # keyframe ids in commit order
+    "links": 0x464D_0003,
+    "retraining": 0x464D_0004,
+}
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS robots (
+    id SERIAL PRIMARY KEY, name TEXT NOT NULL UNIQUE, created DOUBLE PRECISION NOT NULL);
+CREATE TABLE IF NOT EXISTS keyframes (
+    id BIGSERIAL PRIMARY KEY,
+    robot INTEGER NOT NULL REFERENCES robots(id) ON DELETE CASCADE,
+    stamp DOUBLE PRECISION NOT NULL, created DOUBLE PRECISION NOT NULL,
+    processed BOOLEAN NOT NULL DEFAULT false, attempts SMALLINT NOT NULL DEFAULT 0,
+    gist BYTEA NOT NULL, bow_ids BYTEA NOT NULL, bow_counts BYTEA NOT NULL, data BYTEA NOT NULL,
+    UNIQUE (robot, stamp));
+CREATE INDEX IF NOT EXISTS keyframes_queue ON keyframes(id) WHERE NOT processed;
+CREATE TABLE IF NOT EXISTS overlap_pairs (
+    kf_a BIGINT NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+    kf_b BIGINT NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+    robot_a INTEGER NOT NULL, robot_b INTEGER NOT NULL,
+    inliers INTEGER NOT NULL, matches INTEGER NOT NULL, created DOUBLE PRECISION NOT NULL,
+    source TEXT NOT NULL DEFAULT 'cascade',
+    PRIMARY KEY (kf_a, kf_b));
+CREATE INDEX IF NOT EXISTS overlaps_robots ON overlap_pairs(robot_a, robot_b);
+CREATE INDEX IF NOT EXISTS overlaps_b ON overlap_pairs(kf_b);
+CREATE TABLE IF NOT EXISTS links (
+    robot_a INTEGER NOT NULL REFERENCES robots(id) ON DELETE CASCADE,
+    robot_b INTEGER NOT NULL REFERENCES robots(id) ON DELETE CASCADE,
+    transform BYTEA NOT NULL, created DOUBLE PRECISION NOT NULL,
+    PRIMARY KEY (robot_a, robot_b));
+CREATE TABLE IF NOT EXISTS codebooks (
+    id SERIAL PRIMARY KEY, created DOUBLE PRECISION NOT NULL, n_clusters INTEGER NOT NULL,
+    dim INTEGER NOT NULL, centroids BYTEA NOT NULL);
+CREATE TABLE IF NOT EXISTS deletions (
+    id BIGSERIAL PRIMARY KEY, robot INTEGER NOT NULL, created DOUBLE PRECISION NOT NULL);
+"""
+OVERLAPS_SQL = (
+    "SELECT o.kf_a, ka.stamp, o.robot_a, o.kf_b, kb.stamp, o.robot_b, o.inliers, o.matches, "
+    "o.source FROM overlap_pairs o JOIN keyframes ka ON ka.id=o.kf_a "
+    "JOIN keyframes kb ON kb.id=o.kf_b "
+    "WHERE (o.robot_a=%s AND o.robot_b=%s) OR (o.robot_b=%s AND o.robot_a=%s)"
+)
+
+
+def redacted(url: str) -> str:
+    """host:port/database of a URL, never its password."""
+    u = urlsplit(url)
+    return f"{u.hostname or 'localhost'}:{u.port or 5432}{u.path or ''}"
+
+
+def create(con, vocab_id: str, where: str) -> None:
+    """The schema, created once whichever replica starts first (an advisory lock); refuse
+    a database of another schema version or vocabulary."""
+    con.execute("SELECT pg_advisory_lock(%s)", (LOCKS["schema"],))
+    try:
+        con.execute(SCHEMA)
+        con.execute(
+            "INSERT INTO meta VALUES ('schema_version', %s), ('vocab_id', %s) "
+            "ON CONFLICT (key) DO NOTHING",
+            (str(SCHEMA_VERSION), vocab_id),
+        )
+        meta = dict(con.execute("SELECT key, value FROM meta").fetchall())
+    finally:
+        con.execute("SELECT pg_advisory_unlock(%s)", (LOCKS["schema"],))
+    if int(meta["schema_version"]) != SCHEMA_VERSION:
+        raise BadInput(
+            f"{where}: schema version {meta['schema_version']}, this build uses {SCHEMA_VERSION}"
+        )
+    if meta["vocab_id"] != vocab_id:
+        raise BadInput(f"{where} was built with vocabulary {meta['vocab_id']}, not {vocab_id}")
+
+
+def insert_frame(con, it: Pending, added: dict[tuple[str, float], Pending]) -> None:
+    """One frame of a batch: stored, found identical (idempotent), or a Conflict."""
+    code = con.execute(
+        "INSERT INTO robots (name, created) VALUES (%s, %s) ON CONFLICT (name) "
+        "DO UPDATE SET name = EXCLUDED.name RETURNING id",
+        (it.robot_id, time.time()),
+    ).fetchone()[0]
+    f = it.frame
+    row = con.execute(
+        "SELECT id, data FROM keyframes WHERE robot=%s AND stamp=%s", (code, f.stamp)
+    ).fetchone()
+    same_batch = added.get((it.robot_id, f.stamp))
+    if row is None and same_batch is not None:
+        row = (same_batch.result[0], same_batch.data)
+    if row is not None:
+        if bytes(row[1]) == it.data:
+            it.result = (int(row[0]), False)
+        else:
+            it.error = Conflict(
+                f"Robot {it.robot_id!r} already has a different keyframe at stamp {f.stamp}"
+            )
+        return
+    kf = con.execute(
+        "INSERT INTO keyframes (robot, stamp, created, gist, bow_ids, bow_counts, data) "
+        "VALUES (%s, %s, %s, %s, %s, %s, %s) RETURNING id",
+        (
+            code,
+            f.stamp,
+            time.time(),
+            f.gist.astype("<f2").tobytes(),
+            f.bow_ids.astype("<u4").tobytes(),
+            f.bow_counts.astype("<u2").tobytes(),
+            it.data,
+        ),
+    ).fetchone()[0]
+    it.result = (int(kf), True)
+    added[(it.robot_id, f.stamp)] = it
+
+
+def record(con, kf_id: int, code: int, winners: list[WinnerRow], links: list[LinkRow]) -> None:
+    """One keyframe's verified winners and link overlaps."""
+    now = time.time()
+    for kf_b, code_b, inliers, matches in winners:
+        con.execute(
+            "INSERT INTO overlap_pairs (kf_a, kf_b, robot_a, robot_b, inliers, matches, created) "
+            "VALUES (%s, %s, %s, %s, %s, %s, %s) ON CONFLICT (kf_a, kf_b) DO UPDATE SET "
+            "inliers = EXCLUDED.inliers, matches = EXCLUDED.matches, source = 'cascade'",
+            (kf_id, kf_b, code, code_b, inliers, matches, now),
+        )
+    insert_link_rows(con, links, now)
+
+
+def insert_link_rows(con, rows: list[LinkRow], now: float) -> int:
+    n = 0
+    for kx, rx, ky, ry, seen, total in rows:
+        hit = con.execute(
+            "SELECT 1 FROM overlap_pairs WHERE (kf_a=%s AND kf_b=%s) OR (kf_a=%s AND kf_b=%s)",
+            (kx, ky, ky, kx),
+        ).fetchone()
+        if hit is None:
+            con.execute(
+                "INSERT INTO overlap_pairs VALUES (%s, %s, %s, %s, %s, %s, %s, 'link')",
+                (kx, ky, rx, ry, seen, total, now),
+            )
+            n += 1
+    return n
+
+
+def put_link(con, code_a: int, code_b: int, T_a_b: np.ndarray, rows: list[LinkRow]) -> int:
+    now = time.time()
+    con.execute(
+        "INSERT INTO links VALUES (%s, %s, %s, %s) ON CONFLICT (robot_a, robot_b) "
+        "DO UPDATE SET transform = EXCLUDED.transform, created = EXCLUDED.created",
+        (code_a, code_b, T_a_b.tobytes(), now),
+    )
+    con.execute(
+        "DELETE FROM overlap_pairs WHERE source='link' AND "
+        "((robot_a=%s AND robot_b=%s) OR (robot_a=%s AND robot_b=%s))",
+        (code_a, code_b, code_b, code_a),
+    )
+    return insert_link_rows(con, rows, now)
+
+
+def delete_robot(con, code: int) -> np.ndarray:
+    """Delete a robot with its keyframes, overlaps and links; log it for the other
+    replicas' indexes. Returns the keyframe ids removed."""
+    ids = np.array(
+        [r[0] for r in con.execute("SELECT id FROM keyframes WHERE robot=%s", (code,))],
+        dtype=np.int64,
+    )
+    con.execute("DELETE FROM overlap_pairs WHERE robot_a=%s OR robot_b=%s", (code, code))
+    con.execute("DELETE FROM links WHERE robot_a=%s OR robot_b=%s", (code, code))
+    con.execute("DELETE FROM keyframes WHERE robot=%s", (code,))
+    con.execute("DELETE FROM robots WHERE id=%s", (code,))
+    con.execute("INSERT INTO deletions (robot, created) VALUES (%s, %s)", (code, time.time()))
+    return ids

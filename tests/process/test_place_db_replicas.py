@@ -1,0 +1,146 @@
+"""The place database on PostgreSQL: two `fleetmap serve place-db --database URL` replicas
+over one real PostgreSQL server, robots ingested through different replicas, one replica
+SIGKILLed, the server restarted under them."""
+
+import threading
+import time
+
+import httpx
+import pytest
+
+from fleetmap.place import PlaceDB
+from tests import pg
+from tests.api.test_place_db_api import frames  # noqa: F401  (fixture)
+from tests.process.test_robustness import _ingest
+from tests.servers import Service
+
+OCTET = {"content-type": "application/octet-stream"}
+
+
+def _replica(url: str, tmp_path, k: int) -> Service:
+    env = {"FLEETMAP_PLACE_DB_DATABASE": url}
+    return Service("place-db", tmp_path / f"r{k}", env=env).start()
+
+
+def _wait(predicate, timeout: float = 30.0):
+    end = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
+def _pairs(overlaps) -> set:
+    return {(o["stamp_a"], o["stamp_b"]) for o in overlaps}
+
+
+def test_replicas_share_keyframes_and_compute_overlaps_once(pg_url, tmp_path, frames):  # noqa: F811
+    one, two = _replica(pg_url, tmp_path, 1), _replica(pg_url, tmp_path, 2)
+    try:
+        with (
+            httpx.Client(base_url=one.url, timeout=60) as a,
+            httpx.Client(base_url=two.url, timeout=60) as b,
+        ):
+            for d in frames["robot_a"]:  # robot A through replica one
+                assert (
+                    a.post("/robots/robot_a/keyframes", content=d, headers=OCTET).status_code == 201
+                )
+            for d in frames["robot_b"]:  # robot B through replica two
+                assert (
+                    b.post("/robots/robot_b/keyframes", content=d, headers=OCTET).status_code == 201
+                )
+            # a keyframe acknowledged by one is found by queries on the other
+            q = b.post("/query", content=frames["robot_a"][3], headers=OCTET).json()
+            assert q["database_size"] == len(frames["robot_a"]) + len(frames["robot_b"])
+            assert q["winner"] is not None and q["winner"]["robot_id"] == "robot_a"
+            params = {"robot_a": "robot_a", "robot_b": "robot_b", "wait": 60}
+            on_one = a.get("/overlaps", params=params).json()
+            on_two = b.get("/overlaps", params=params).json()
+            assert on_one["pending"] == 0 and on_two["pending"] == 0
+            assert _pairs(on_one["overlaps"]) == _pairs(on_two["overlaps"]) != set()
+            # computed once: each keyframe of the pair appears in at most one cascade row
+            kfs = [o["keyframe_a"] for o in on_one["overlaps"] if o["source"] == "cascade"]
+            assert len(kfs) == len(set(kfs))
+    finally:
+        one.stop()
+        two.stop()
+
+
+def test_same_overlaps_on_either_backend(pg_url, tmp_path, frames, vocabulary):  # noqa: F811
+    found = {}
+    for name, store in (("sqlite", tmp_path / "p.sqlite"), ("postgres", pg_url)):
+        db = PlaceDB(store, vocabulary, background=False)
+        try:
+            for robot in ("robot_a", "robot_b"):
+                db.add_keyframes(robot, frames[robot])
+            db.process_pending()
+            found[name] = {
+                (o.stamp_a, o.stamp_b, o.inliers) for o in db.overlaps("robot_a", "robot_b")
+            }
+        finally:
+            db.close()
+    assert found["sqlite"] == found["postgres"] != set()
+
+
+def test_sigkill_of_a_replica_loses_no_acknowledged_keyframe(pg_url, tmp_path, fleet_frames):
+    one, two = _replica(pg_url, tmp_path, 1), _replica(pg_url, tmp_path, 2)
+    acked, errors = [], []
+    robots = list(fleet_frames.items())
+    threads = [
+        threading.Thread(target=_ingest, args=(svc.url, r, fs, acked, errors))
+        for k, (r, fs) in enumerate(robots[:6])
+        for svc in [(one, two)[k % 2]]
+    ]
+    try:
+        for t in threads:
+            t.start()
+        _wait(lambda: len(acked) >= 40)
+        one.kill()  # SIGKILL while its robots are still posting
+        for t in threads:
+            t.join(60)
+        assert not errors
+        with httpx.Client(base_url=two.url, timeout=60) as c:
+            _wait(lambda: c.get("/overlaps", params={"wait": 5}).json()["pending"] == 0, 120)
+            counts = {r["robot_id"]: r["keyframes"] for r in c.get("/robots").json()["robots"]}
+            for _, kf_id, data in acked:
+                assert c.get(f"/keyframes/{kf_id}/frame").content == data
+            for robot in {a[0] for a in acked}:
+                assert counts[robot] >= sum(a[0] == robot for a in acked)
+            # the killed replica's claims went back to the queue and were done by the other
+            assert c.get("/healthz").json()["pending"] == 0
+    finally:
+        one.stop()
+        two.stop()
+
+
+@pytest.mark.skipif(not pg.available(), reason="PostgreSQL binaries not found")
+def test_postgres_restart_is_503_then_served_again(tmp_path, frames):  # noqa: F811
+    cluster = pg.Cluster().start()
+    try:
+        url = cluster.database()
+        svc = _replica(url, tmp_path, 1)
+        try:
+            with httpx.Client(base_url=svc.url, timeout=60) as c:
+                d0, d1 = frames["robot_a"][:2]
+                assert (
+                    c.post("/robots/robot_a/keyframes", content=d0, headers=OCTET).status_code
+                    == 201
+                )
+                cluster.stop()
+                r = c.post("/robots/robot_a/keyframes", content=d1, headers=OCTET)
+                assert r.status_code == 503 and "PostgreSQL" in r.json()["detail"], r.text
+                assert "retry-after" in r.headers
+                r = c.get("/robots")
+                assert r.status_code == 503 and "unreachable" in r.json()["detail"]
+                assert c.get("/healthz").status_code == 503
+                cluster.start()  # back: served again without restarting the replica
+                _wait(lambda: c.get("/robots").status_code == 200)
+                assert (
+                    c.post("/robots/robot_a/keyframes", content=d1, headers=OCTET).status_code
+                    == 201
+                )
+                robots = c.get("/robots").json()["robots"]
+                assert [(r["robot_id"], r["keyframes"]) for r in robots] == [("robot_a", 2)]
+        finally:
+            svc.stop()
+    finally:
+        cluster.remove()
