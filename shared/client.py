@@ -24,34 +24,61 @@ def _raise_for(resp: httpx.Response) -> httpx.Response:
 
 
 class _Client:
+    """`url` may list several replicas of one service, comma-separated
+    ("http://a:8100,http://b:8100"): a request that cannot connect, or gets a 503, moves
+    on to the next one at once, and waits only once every replica has been tried."""
+
     def __init__(self, url: str, timeout: float = 60.0, token: str | None = None):
         headers = {"authorization": f"Bearer {token}"} if token else {}
-        self.url = url.rstrip("/")
-        self.http = httpx.Client(base_url=self.url, timeout=timeout, headers=headers)
+        self.urls = [u.strip().rstrip("/") for u in url.split(",") if u.strip()]
+        if not self.urls:
+            raise BadInput(f"No service URL in {url!r}")
+        self._clients = [
+            httpx.Client(base_url=u, timeout=timeout, headers=headers) for u in self.urls
+        ]
+        self._current = 0
+
+    @property
+    def url(self) -> str:
+        return self.urls[self._current]
+
+    @property
+    def http(self) -> httpx.Client:
+        return self._clients[self._current]
 
     #: Waits before the retries of a request that could not connect or got a 503.
     RETRY_WAITS_S = (0.5, 1.5)
 
     def _call(self, method: str, path: str, retry: bool = True, **kw) -> httpx.Response:
         """One request, retried after a refused connection (nothing was sent) or a 503
-        (the service asked for it, `Retry-After` honoured up to 10 s); other failures are
-        raised at once, so a request is never sent twice after it reached the service."""
+        (the service asked for it, `Retry-After` honoured up to 10 s), on the next replica
+        first; other failures are raised at once, so a request is never sent twice after
+        it reached the service."""
         waits = list(self.RETRY_WAITS_S) if retry else []
-        while True:
+        tries = len(self.urls) * (len(waits) + 1)
+        for attempt in range(1, tries + 1):
+            last = attempt == tries
             try:
                 resp = self.http.request(method, path, **kw)
             except httpx.ConnectError as exc:
-                if not waits:
+                if last:
                     raise Unavailable(f"Cannot reach {self.url}{path}: {exc}") from exc
-                time.sleep(waits.pop(0))
+                self._next(waits, "")
                 continue
             except httpx.TransportError as exc:
                 raise Unavailable(f"Cannot reach {self.url}{path}: {exc}") from exc
-            if resp.status_code == 503 and waits:
-                after, wait = resp.headers.get("retry-after", ""), waits.pop(0)
-                time.sleep(min(float(after), 10.0) if after.isdigit() else wait)
+            if resp.status_code == 503 and not last:
+                self._next(waits, resp.headers.get("retry-after", ""))
                 continue
             return _raise_for(resp)
+        raise AssertionError("unreachable")
+
+    def _next(self, waits: list[float], retry_after: str) -> None:
+        """Move to the next replica; after a full round, wait (Retry-After up to 10 s)."""
+        self._current = (self._current + 1) % len(self.urls)
+        if self._current == 0 or len(self.urls) == 1:
+            wait = waits.pop(0) if waits else 0.0
+            time.sleep(min(float(retry_after), 10.0) if retry_after.isdigit() else wait)
 
     def health(self, retry: bool = True) -> dict:
         return self._call("GET", "/healthz", retry=retry).json()
@@ -72,7 +99,8 @@ class _Client:
                 time.sleep(poll_s)
 
     def close(self) -> None:
-        self.http.close()
+        for c in self._clients:
+            c.close()
 
     def __enter__(self):
         return self

@@ -6,8 +6,10 @@ service replicas over one database.
   keyframe committed before N; the others' keyframes reach its index by catch-up on id
   (`PlaceDB.catch_up`, every 0.1 s and after each of its own commits).
 - Overlap detection is a queue in the table itself: a replica claims the oldest unprocessed
-  keyframe with `FOR UPDATE SKIP LOCKED` and records its overlaps in the same transaction;
-  a replica killed mid-keyframe drops its connection, so the claim returns to the queue.
+  keyframe with `FOR NO KEY UPDATE SKIP LOCKED` and records its overlaps in the same
+  transaction (not FOR UPDATE: that lock blocks the other replicas' overlap rows that
+  reference the keyframe, and two claims deadlock); a replica killed mid-keyframe drops
+  its connection, so the claim returns to the queue.
   A keyframe whose detection raises three times is left aside (counted as parked).
 - Schema creation, link registration and codebook retraining each run under their own
   advisory lock, so two replicas never do them at once.
@@ -210,7 +212,8 @@ class PostgresStore:
             with self.conn() as con, con.transaction():
                 con.execute("SELECT pg_advisory_xact_lock(%s)", (schema.LOCKS["ingest"],))
                 for it in batch:
-                    schema.insert_frame(con, it, added)
+                    code = self._codes.get(it.robot_id) or schema.robot_code(con, it.robot_id)
+                    schema.insert_frame(con, code, it, added)
         except BaseException as exc:
             for it in batch:
                 it.result = None
@@ -308,7 +311,7 @@ class PostgresStore:
             with con.transaction():
                 row = con.execute(
                     "SELECT id FROM keyframes WHERE NOT processed AND attempts < %s "
-                    "ORDER BY id LIMIT 1 FOR UPDATE SKIP LOCKED",
+                    "ORDER BY id LIMIT 1 FOR NO KEY UPDATE SKIP LOCKED",
                     (MAX_ATTEMPTS,),
                 ).fetchone()
                 if row is None:

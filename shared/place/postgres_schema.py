@@ -87,13 +87,21 @@ def create(con, vocab_id: str, where: str) -> None:
         raise BadInput(f"{where} was built with vocabulary {meta['vocab_id']}, not {vocab_id}")
 
 
-def insert_frame(con, it: Pending, added: dict[tuple[str, float], Pending]) -> None:
-    """One frame of a batch: stored, found identical (idempotent), or a Conflict."""
-    code = con.execute(
-        "INSERT INTO robots (name, created) VALUES (%s, %s) ON CONFLICT (name) "
-        "DO UPDATE SET name = EXCLUDED.name RETURNING id",
-        (it.robot_id, time.time()),
-    ).fetchone()[0]
+def robot_code(con, name: str) -> int:
+    """The robot's id, the robot created if new (by this or any replica)."""
+    row = con.execute(
+        "INSERT INTO robots (name, created) VALUES (%s, %s) ON CONFLICT (name) DO NOTHING "
+        "RETURNING id",
+        (name, time.time()),
+    ).fetchone()
+    return (
+        row[0] if row else con.execute("SELECT id FROM robots WHERE name=%s", (name,)).fetchone()[0]
+    )
+
+
+def insert_frame(con, code: int, it: Pending, added: dict[tuple[str, float], Pending]) -> None:
+    """One frame of robot `code` in a batch: stored, found identical (idempotent), or a
+    Conflict."""
     f = it.frame
     row = con.execute(
         "SELECT id, data FROM keyframes WHERE robot=%s AND stamp=%s", (code, f.stamp)

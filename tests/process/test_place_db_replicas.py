@@ -8,6 +8,7 @@ import time
 import httpx
 import pytest
 
+from fleetmap.client import PlaceDBClient
 from fleetmap.place import PlaceDB
 from tests import pg
 from tests.api.test_place_db_api import frames  # noqa: F401  (fixture)
@@ -107,6 +108,9 @@ def test_sigkill_of_a_replica_loses_no_acknowledged_keyframe(pg_url, tmp_path, f
                 assert counts[robot] >= sum(a[0] == robot for a in acked)
             # the killed replica's claims went back to the queue and were done by the other
             assert c.get("/healthz").json()["pending"] == 0
+        # clients given both replicas fail over to the live one
+        with PlaceDBClient(f"{one.url},{two.url}", timeout=10) as client:
+            assert {r["robot_id"] for r in client.robots()} >= {a[0] for a in acked}
     finally:
         one.stop()
         two.stop()
