@@ -211,9 +211,12 @@ class PostgresStore:
         try:
             with self.conn() as con, con.transaction():
                 con.execute("SELECT pg_advisory_xact_lock(%s)", (schema.LOCKS["ingest"],))
+                by_robot: dict[str, list[Pending]] = {}
                 for it in batch:
-                    code = self._codes.get(it.robot_id) or schema.robot_code(con, it.robot_id)
-                    schema.insert_frame(con, code, it, added)
+                    by_robot.setdefault(it.robot_id, []).append(it)
+                for name, items in by_robot.items():
+                    code = self._codes.get(name) or schema.robot_code(con, name)
+                    schema.insert_frames(con, code, items, added)
         except BaseException as exc:
             for it in batch:
                 it.result = None

@@ -99,39 +99,56 @@ def robot_code(con, name: str) -> int:
     )
 
 
-def insert_frame(con, code: int, it: Pending, added: dict[tuple[str, float], Pending]) -> None:
-    """One frame of robot `code` in a batch: stored, found identical (idempotent), or a
-    Conflict."""
-    f = it.frame
-    row = con.execute(
-        "SELECT id, data FROM keyframes WHERE robot=%s AND stamp=%s", (code, f.stamp)
-    ).fetchone()
-    same_batch = added.get((it.robot_id, f.stamp))
-    if row is None and same_batch is not None:
-        row = (same_batch.result[0], same_batch.data)
-    if row is not None:
-        if bytes(row[1]) == it.data:
-            it.result = (int(row[0]), False)
-        else:
+def insert_frames(con, code: int, items: list[Pending], added: dict) -> None:
+    """Frames of robot `code` in a batch, in two round trips: each stored, found identical
+    (idempotent), or a Conflict. `added` maps (robot, stamp) to the frames stored."""
+    rows = con.execute(
+        "SELECT stamp, id, data FROM keyframes WHERE robot=%s AND stamp = ANY(%s)",
+        (code, [it.frame.stamp for it in items]),
+    ).fetchall()
+    stored = {stamp: (kf, bytes(data)) for stamp, kf, data in rows}
+    fresh, twins = [], []
+    for it in items:
+        key = (it.robot_id, it.frame.stamp)
+        first = added.get(key)
+        same = stored[key[1]][1] if key[1] in stored else first.data if first else None
+        if same is not None and same != it.data:
             it.error = Conflict(
-                f"Robot {it.robot_id!r} already has a different keyframe at stamp {f.stamp}"
+                f"Robot {it.robot_id!r} already has a different keyframe at stamp {key[1]}"
             )
-        return
-    kf = con.execute(
-        "INSERT INTO keyframes (robot, stamp, created, gist, bow_ids, bow_counts, data) "
-        "VALUES (%s, %s, %s, %s, %s, %s, %s) RETURNING id",
-        (
-            code,
-            f.stamp,
-            time.time(),
-            f.gist.astype("<f2").tobytes(),
-            f.bow_ids.astype("<u4").tobytes(),
-            f.bow_counts.astype("<u2").tobytes(),
-            it.data,
-        ),
-    ).fetchone()[0]
-    it.result = (int(kf), True)
-    added[(it.robot_id, f.stamp)] = it
+        elif key[1] in stored:
+            it.result = (int(stored[key[1]][0]), False)
+        elif first is not None:
+            twins.append(it)  # sent twice in this batch: the first one's id
+        else:
+            fresh.append(it)
+            added[key] = it
+    if fresh:
+        cur = con.cursor()
+        cur.executemany(
+            "INSERT INTO keyframes (robot, stamp, created, gist, bow_ids, bow_counts, data) "
+            "VALUES (%s, %s, %s, %s, %s, %s, %s) RETURNING id",
+            [_keyframe_row(code, it) for it in fresh],
+            returning=True,
+        )
+        for it in fresh:
+            it.result = (int(cur.fetchone()[0]), True)
+            cur.nextset()
+    for it in twins:
+        it.result = (added[(it.robot_id, it.frame.stamp)].result[0], False)
+
+
+def _keyframe_row(code: int, it: Pending) -> tuple:
+    f = it.frame
+    return (
+        code,
+        f.stamp,
+        time.time(),
+        f.gist.astype("<f2").tobytes(),
+        f.bow_ids.astype("<u4").tobytes(),
+        f.bow_counts.astype("<u2").tobytes(),
+        it.data,
+    )
 
 
 def record(con, kf_id: int, code: int, winners: list[WinnerRow], links: list[LinkRow]) -> None:
