@@ -165,7 +165,8 @@ local_torch_wheel() {
 INDEX_PID=""
 serve_torch_index() {
   local wheel="$1" dir="$CACHE/torch-index"
-  if [ ! -s "$dir/simple/torch/index.html" ]; then
+  if [ ! -s "$dir/files/$(basename "$wheel")" ] || [ ! -s "$dir/simple/index.html" ]; then
+    $SUDO rm -rf "$dir"
     log "a local index of torch 2.13.0 CPU and its dependencies in $dir"
     $SUDO mkdir -p "$dir/files"
     $SUDO cp "$wheel" "$dir/files/"
