@@ -1,20 +1,41 @@
 # fleetmap place database: `fleetmap serve place-db`, storage in the /data volume.
 # The base image and the torch wheel source are build arguments: ordinary users take these
-# defaults; an offline machine points them at a local base image and wheel folder.
+# defaults; an offline machine points them at a local base image and wheel index
+# (scripts/compose.sh does, see docs/OPERATIONS.md "Docker compose").
+#   BASE_IMAGE   Debian bookworm with Python 3.11 (`python3 -m venv` must work)
+#   TORCH_INDEX  a PEP 503 index with the CPU build of torch 2.13.0 and its dependencies
+#   OPEN3D       the Open3D distribution: open3d-cpu (same `open3d` module, 0.7 GB smaller
+#                than the CUDA build the services never use) or open3d
+# Two stages: everything is installed into /opt/venv, the runtime stage copies only that venv,
+# so no pip cache, build tools or sources are left in the image.
 ARG BASE_IMAGE=python:3.11-slim-bookworm
-FROM ${BASE_IMAGE}
+
+FROM ${BASE_IMAGE} AS build
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
-RUN apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libgomp1 \
-    && rm -rf /var/lib/apt/lists/*
-WORKDIR /app
+ARG OPEN3D=open3d-cpu
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PATH=/opt/venv/bin:$PATH
+RUN python3 -m venv /opt/venv
 # CPU-only torch first, so no CUDA build is pulled in.
 RUN pip install --no-cache-dir torch==2.13.0 --index-url ${TORCH_INDEX}
-COPY pyproject.toml README.md ./
-COPY shared ./shared
-COPY services ./services
-RUN pip install --no-cache-dir . \
-    && useradd --system --uid 10001 --home-dir /app fleetmap \
-    && mkdir -p /data && chown fleetmap /data
+# The dependencies alone (read from pyproject.toml), so a code change does not reinstall them.
+COPY pyproject.toml /tmp/pyproject.toml
+RUN python -c "import tomllib; print(*tomllib.load(open('/tmp/pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
+        | sed "s/^open3d\b/${OPEN3D}/" > /tmp/requirements.txt \
+    && pip install --no-cache-dir -r /tmp/requirements.txt
+# The project itself (.dockerignore keeps tests, docs and the venv out of the context).
+COPY . /src
+RUN pip install --no-cache-dir --no-deps /src
+
+FROM ${BASE_IMAGE}
+# Open3D's shared libraries; a base image that has them already skips apt.
+RUN dpkg -s libusb-1.0-0 libgl1 libegl1 libgomp1 >/dev/null 2>&1 \
+    || (apt-get update && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libegl1 libgomp1 \
+        && rm -rf /var/lib/apt/lists/*)
+RUN useradd --system --uid 10001 --home-dir /app --no-create-home fleetmap \
+    && mkdir -p /app /data && chown fleetmap /data
+COPY --from=build /opt/venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1
+WORKDIR /app
 # not root: a compromised service cannot touch the image
 USER fleetmap
 ENV FLEETMAP_PLACE_DB_DATA_DIR=/data

@@ -38,7 +38,8 @@ def test_dockerfile_commands_are_real_cli_commands():
         args = parser.parse_args(argv[1:])  # exits on an unknown command or option
         assert args.command == "serve" and args.host == "0.0.0.0"
         assert "torch==2.13.0" in text and f"EXPOSE {args.port}" in text
-        for src in re.findall(r"^COPY (\S+)", text, re.M):
+        # sources from the build context (not COPY --from=<stage>)
+        for src in re.findall(r"^COPY (?!--from)(\S+)", text, re.M):
             assert (ROOT / src).exists(), src
 
 
