@@ -28,8 +28,8 @@ sys.path.insert(0, str(ROOT))
 from fleetmap.camera import Intrinsics  # noqa: E402
 from fleetmap.client import align_request  # noqa: E402
 from fleetmap.correspondences import RGBDView  # noqa: E402
+from tests.api.test_aligner_api import _png_declaring  # noqa: E402
 from tests.servers import Service  # noqa: E402
-from tests.test_aligner_api import _png_declaring  # noqa: E402
 
 
 def _views(n: int, w: int, h: int, seed: int) -> list[RGBDView]:
