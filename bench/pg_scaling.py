@@ -10,8 +10,9 @@ the tests do) and ../shared/data (real queries: corridor revisits, SUN3D robot B
    `Synth`) at once; SQLite (one process), PostgreSQL through 1 replica and through 2
    (clients split over both). Background overlap detection off, so this is storage alone.
 2. Query latency and recall at each size: the same keyframes in both backends (filled
-   in-process, chunk by chunk), the real revisit queries run against each (`db.query`:
-   index in memory, candidates' frames read from storage).
+   in-process, chunk by chunk; the codebook retrained at k = 2 sqrt(N) and shared), the
+   real revisit queries run against each (`db.query`: index in memory, candidates' frames
+   read from storage). faiss and OpenCV single-threaded, as the service runs them.
 3. The overlap worker: `--worker-frames` unprocessed keyframes added to the database of the
    largest size, worked down by 1 replica, then (same start) by 2; keyframes/s.
 """
@@ -128,7 +129,11 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[10000, 100000])
     ap.add_argument("--http-frames", type=int, default=4000)
     ap.add_argument("--worker-frames", type=int, default=1500)
+    ap.add_argument("--ingest-only", action="store_true", help="part 1 alone")
     args = ap.parse_args()
+    from fleetmap.services.place_db.main import single_threaded_kernels
+
+    single_threaded_kernels()
     vocab = load_vocabulary()
     cor, sun, gt = real_frames(vocab)
     synth = Synth(vocab, cor + sun["robot_a"] + sun["robot_b"])
@@ -136,6 +141,8 @@ def main() -> None:
     cluster = pg.Cluster().start()
     try:
         rates = ingest_rates(synth, args.http_frames, cluster, tmp)
+        if args.ingest_only:
+            return
         url = cluster.database()
         dbs = [
             PlaceDB(tmp / "scale.sqlite", vocab, retrain=OFF, background=False),
@@ -148,6 +155,10 @@ def main() -> None:
         stamp, rows = 1e6, []
         for size in sorted(args.sizes):
             stamp = fill(dbs, synth, size, stamp)
+            book = dbs[0].retrain()  # k = 2 sqrt(N), as bench/retrieval.py; both the same
+            dbs[1].index.set_codebook(dbs[0].index.codebook)
+            dbs[1].store.save_codebook(dbs[0].index.codebook)
+            print(f"{size}: codebook of {book['clusters']} clusters")
             for name, db in zip(("sqlite", "postgres"), dbs, strict=True):
                 ev = evaluate(db, cor, sun, gt)
                 ms = np.array(ev["cascade_ms"])

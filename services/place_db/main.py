@@ -17,15 +17,17 @@ log = logging.getLogger(__name__)
 
 
 def single_threaded_kernels() -> None:
-    """One thread per faiss search and OpenCV call: a query is one vector and one pair, so
-    their thread pools buy nothing here, and their spinning threads starve the overlap
-    worker of a second replica (profiled: 2 replicas on 2 cores verified 8 keyframes/s
-    with faiss's OpenMP threads, 25 without; 1 replica 16 -> 23)."""
+    """One thread per faiss search, OpenCV call and BLAS product: a query is one vector and
+    one pair, so their thread pools buy little, and their spinning threads starve a second
+    replica's overlap worker (top: one replica at 190% CPU on 2 cores; 2 replicas verified
+    fewer keyframes a second than 1)."""
     import cv2
     import faiss
+    from threadpoolctl import threadpool_limits
 
     faiss.omp_set_num_threads(1)
     cv2.setNumThreads(1)
+    threadpool_limits(1)  # OpenBLAS / OpenMP of numpy and scipy
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

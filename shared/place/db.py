@@ -161,7 +161,7 @@ class PlaceDB:
         """Newly stored keyframes: into the index, then the worker's queue (a shared store:
         the index catches up with every replica's commits, the queue is the store's)."""
         if self.follower is not None:
-            self.follower.catch_up()
+            self.follower.catch_up(keyframes_only=True)
             self.upkeep.maybe(len(added))
             return
         self.index.add_many(

