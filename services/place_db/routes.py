@@ -130,7 +130,7 @@ def keyframe_frame(request: Request, kf_id: int = Path(ge=1, le=2**63 - 1)) -> R
 def _winner(db: PlaceDB, c: Candidate) -> s.Winner:
     return s.Winner(
         keyframe_id=c.kf_id,
-        robot_id=db.robot_name(c.robot),
+        robot_id=db.robot_name(c.robot_code),
         stamp=c.stamp,
         inliers=c.verification.inliers,
         matches=c.verification.matches,
@@ -159,7 +159,7 @@ async def query(
     frame = decode(body)
     flt = db.make_filter(robot, exclude_robot, max_stamp)
     r = await run_in_threadpool(db.query, frame, flt)
-    verified = [_winner(db, c) for c in r.verified if db.robot_name(c.robot) is not None]
+    verified = [_winner(db, c) for c in r.verified if db.robot_name(c.robot_code) is not None]
     return s.QueryAnswer(
         # a candidate whose robot was deleted while the query ran is left out
         winner=next(iter(verified), None),

@@ -50,8 +50,8 @@ def local_stage(
     )
     chosen, per_robot = [], {}
     for c in passed:
-        if per_robot.get(c.robot, 0) < p.max_verify_per_robot:
-            per_robot[c.robot] = per_robot.get(c.robot, 0) + 1
+        if per_robot.get(c.robot_code, 0) < p.max_verify_per_robot:
+            per_robot[c.robot_code] = per_robot.get(c.robot_code, 0) + 1
             chosen.append(c)
         if len(chosen) >= p.max_verify:
             break

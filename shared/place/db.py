@@ -349,9 +349,9 @@ class PlaceDB:
         result = run_cascade(frame, self.index, self.load_frame, self.params, flt)
         best = {}
         for c in result.verified:  # most inliers first: the first per robot wins
-            best.setdefault(c.robot, c)
+            best.setdefault(c.robot_code, c)
         winners = [
-            (c.kf_id, c.robot, c.verification.inliers, c.verification.matches)
+            (c.kf_id, c.robot_code, c.verification.inliers, c.verification.matches)
             for c in best.values()
         ]
         links = self._links.for_keyframe(kf_id, frame, code)
@@ -360,7 +360,7 @@ class PlaceDB:
                 frame.robot_id,
                 kf_id,
                 frame.stamp,
-                self.store.robot_name(c.robot) or "?",
+                self.store.robot_name(c.robot_code) or "?",
                 c.kf_id,
                 c.stamp,
                 c.verification.inliers,

@@ -34,8 +34,11 @@ class Stage:
 
 @dataclass
 class Candidate:
+    """A stored keyframe the cascade considered; `robot_code` is the store's integer code
+    of its robot (names are for the API: `PlaceDB.robot_name`)."""
+
     kf_id: int
-    robot: int
+    robot_code: int
     stamp: float
     gist_distance: float
     bow_distance: float = 1.0
