@@ -53,7 +53,7 @@ class PostgresStore:
 
     shared = True  # other processes write the same database
 
-    def __init__(self, url: str, vocab_id: str, pool_size: int = 8, timeout_s: float = 10.0):
+    def __init__(self, url: str, vocab_id: str, pool_size: int = 8, timeout_s: float = 5.0):
         from psycopg_pool import ConnectionPool
 
         self.url, self.where = url, schema.redacted(url)
