@@ -324,6 +324,8 @@ class PostgresStore:
                 kf = row[0]
                 try:
                     result = compute(kf)
+                except Unavailable:
+                    raise  # the database, not the keyframe: no attempt counted
                 except Exception as exc:  # counted below, outside the rolled-back claim
                     failed = exc
                 else:
