@@ -153,3 +153,23 @@ def test_postgres_restart_is_503_then_served_again(tmp_path, frames):  # noqa: F
             svc.stop()
     finally:
         cluster.remove()
+
+
+def test_a_keyframe_failing_detection_is_parked_and_the_rest_go_on(pg_url, frames, vocabulary):  # noqa: F811
+    """A stored frame corrupted: its detection raises; after three attempts it is parked
+    (listed, out of the queue) and every other keyframe is processed."""
+    import psycopg
+
+    db = PlaceDB(pg_url, vocabulary, background=False)
+    try:
+        ids = [kf for kf, _ in db.add_keyframes("robot_a", frames["robot_a"])]
+        ids += [kf for kf, _ in db.add_keyframes("robot_b", frames["robot_b"])]
+        with psycopg.connect(pg_url, autocommit=True) as con:
+            con.execute("UPDATE keyframes SET data = '\\x00'::bytea WHERE id = %s", (ids[3],))
+        db.process_pending()
+        st = db.stats()
+        assert st["pending"] == 0 and st["worker_failures"] == 3
+        assert list(st["parked"]) == [ids[3]] and st["storage_errors"] >= 3
+        assert db.overlaps("robot_a", "robot_b")  # the others were processed
+    finally:
+        db.close()
