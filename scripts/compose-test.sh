@@ -16,6 +16,7 @@ export PLACE_DB_URL=http://127.0.0.1:8100 ALIGNER_URL=http://127.0.0.1:8200
 DATA=${FLEETMAP_DATA:-../shared/data}
 PAIR=sun3d_studyroom # the smallest real two-robot recording: 2 x 50 RGB-D frames
 VOLUME=${COMPOSE_PROJECT_NAME}_place-db-data
+PG_PROJECT=fleetmap-test-pg # the PostgreSQL stack: two place-db replicas over one database
 T0=$SECONDS
 SKIPPED=""
 
@@ -39,6 +40,9 @@ teardown() {
   if docker info >/dev/null 2>&1; then
     FLEETMAP_KEEP_ENGINE=1 bash scripts/compose.sh down || rc=1
     docker volume rm -f "$VOLUME" >/dev/null || rc=1
+    COMPOSE_PROJECT_NAME=$PG_PROJECT FLEETMAP_STACK=postgres FLEETMAP_KEEP_ENGINE=1 \
+      bash scripts/compose.sh down || rc=1
+    docker volume rm -f "${PG_PROJECT}_postgres-data" "${PG_PROJECT}_place-db-data" >/dev/null || rc=1
   fi
   if [ "$engine_was_running" = 0 ]; then
     bash scripts/compose.sh engine-stop || rc=1
@@ -112,3 +116,34 @@ bash scripts/compose.sh restart place-db || fail "restart place-db"
 after=$(keyframes "$(robots)") || fail "GET /robots after the restart"
 [ "$after" = "$before" ] || fail "after the restart the place database holds '$after', before '$before'"
 log "after the restart the place database still holds $after (the volume kept them)"
+
+# --- the PostgreSQL stack: two place-db replicas over one database (issue 12) ---------------
+log "the PostgreSQL stack: postgres, two place-db replicas (8100, 8101), the aligner"
+FLEETMAP_KEEP_ENGINE=1 bash scripts/compose.sh down || fail "stopping the SQLite stack"
+export COMPOSE_PROJECT_NAME=$PG_PROJECT FLEETMAP_STACK=postgres
+docker volume rm -f "${PG_PROJECT}_postgres-data" >/dev/null
+timeout 900 bash scripts/compose.sh up || fail "the PostgreSQL stack did not come up healthy"
+timeout 300 .venv/bin/python -m pytest -p no:dash -q tests/e2e/test_services_e2e.py ||
+  fail "integration tests against replica 1"
+REPLICAS=http://127.0.0.1:8100,http://127.0.0.1:8101
+timeout 300 .venv/bin/fleetmap --quiet merge "A=$DATA/$PAIR/robot_a" "B=$DATA/$PAIR/robot_b" \
+  --place-db "$REPLICAS" --aligner "$ALIGNER_URL" --out "$WORK/merge-pg" ||
+  fail "fleetmap merge through the replicas"
+expected=$(keyframes --report "$WORK/merge-pg/report.json") || fail "report.json (PostgreSQL)"
+second() { curl -fsS --max-time 10 http://127.0.0.1:8101/robots; }
+on_two=$(keyframes "$(second)") || fail "GET /robots on replica 2"
+[ "$on_two" = "$expected" ] || fail "replica 2 holds $on_two, report.json says $expected"
+log "replica 2 holds $on_two; SIGKILL of replica 1"
+docker kill "$(docker ps -qf "name=${PG_PROJECT}_place-db_1")" >/dev/null || fail "docker kill"
+[ "$(keyframes "$(second)")" = "$expected" ] || fail "replica 2 after replica 1 was killed"
+.venv/bin/fleetmap --quiet overlaps A B --place-db "$REPLICAS" --json >/dev/null ||
+  fail "the clients' failover to replica 2"
+log "replica 2 serves alone, the clients fail over; restarting PostgreSQL"
+docker restart "$(docker ps -qf "name=${PG_PROJECT}_postgres_1")" >/dev/null || fail "restart postgres"
+for _ in $(seq 60); do
+  back=$(keyframes "$(second 2>/dev/null || echo '{"robots": []}')")
+  [ "$back" = "$expected" ] && break
+  sleep 1
+done
+[ "$back" = "$expected" ] || fail "replica 2 after the PostgreSQL restart: $back"
+log "after the PostgreSQL restart replica 2 serves $back again, without a restart of its own"

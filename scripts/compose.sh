@@ -8,6 +8,8 @@
 #   scripts/compose.sh restart SERVICE   restart one service (place-db keeps its data)
 #   scripts/compose.sh prepare           only the engine, compose and the base image
 #   scripts/compose.sh engine-stop       stop dockerd if this script started it
+# FLEETMAP_STACK=postgres: the place database on PostgreSQL as two replicas (127.0.0.1:8100 and
+# :8101) with a postgres service (docker-compose.postgres.yml over docker-compose.yml).
 # On a machine without a Docker engine it installs Debian's docker.io (and docker-compose where
 # `docker compose` is missing) and starts dockerd in the background; `down` stops that dockerd
 # again (FLEETMAP_KEEP_ENGINE=1 keeps it). Without an image registry it makes a local base
@@ -24,6 +26,12 @@ LOCAL_BASE=fleetmap-base:bookworm
 DEFAULT_BASE=python:3.11-slim-bookworm
 INDEX_PORT=${FLEETMAP_INDEX_PORT:-38100}  # fixed: the index URL is part of the build cache key
 SERVICES=(place-db aligner)
+FILES=(-f docker-compose.yml)
+if [ "${FLEETMAP_STACK:-sqlite}" = postgres ]; then
+  # the place database on PostgreSQL, two replicas (8100, 8101): docker-compose.postgres.yml
+  SERVICES=(postgres place-db place-db-2 aligner)
+  FILES+=(-f docker-compose.postgres.yml)
+fi
 SUDO=""
 [ "$(id -u)" -eq 0 ] || SUDO="sudo"
 
@@ -104,7 +112,7 @@ compose_find() {
     COMPOSE=(docker-compose)
   fi
 }
-compose() { "${COMPOSE[@]}" -f docker-compose.yml "$@"; }
+compose() { "${COMPOSE[@]}" "${FILES[@]}" "$@"; }
 
 # --- the base image -----------------------------------------------------------------------
 # Debian bookworm (Python 3.11) with what the images need, and this machine's CA bundle so pip
@@ -263,7 +271,9 @@ cmd_up() {
   build
   compose up -d --no-build
   wait_healthy "${SERVICES[@]}"
-  log "place database on http://${FLEETMAP_BIND:-127.0.0.1}:8100, aligner on http://${FLEETMAP_BIND:-127.0.0.1}:8200"
+  local second=""
+  [ "${FLEETMAP_STACK:-sqlite}" = postgres ] && second=" and :8101 (PostgreSQL replicas)"
+  log "place database on http://${FLEETMAP_BIND:-127.0.0.1}:8100$second, aligner on http://${FLEETMAP_BIND:-127.0.0.1}:8200"
 }
 
 cmd_down() {
