@@ -353,3 +353,11 @@ def refuse_flat_names(prefix: str, params_class, nested: str, renamed=()) -> Non
         old = f"{prefix}{was.upper()}"
         if old in os.environ:
             raise BadInput(f"{old} is no longer read: set {prefix}{nested}__{now.upper()} instead")
+
+
+def secrets_dir() -> str | None:
+    """Where settings may also come from files, one per variable named like it in lower case
+    (`fleetmap_place_db_operator_token`): FLEETMAP_SECRETS_DIR, else Docker's /run/secrets
+    where it exists. Tokens need not sit in the environment or in a compose file."""
+    path = os.environ.get("FLEETMAP_SECRETS_DIR") or "/run/secrets"
+    return path if os.path.isdir(path) else None

@@ -6,12 +6,16 @@ from pydantic import SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.align.types import AlignParams
-from fleetmap.services.common import refuse_flat_names
+from fleetmap.services.common import refuse_flat_names, secrets_dir
 
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(
-        env_prefix="FLEETMAP_ALIGNER_", env_nested_delimiter="__", env_file=".env", extra="ignore"
+        env_prefix="FLEETMAP_ALIGNER_",
+        env_nested_delimiter="__",
+        env_file=".env",
+        secrets_dir=secrets_dir(),
+        extra="ignore",
     )
 
     # access control: none configured = open (logged at start-up)

@@ -11,7 +11,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
-from fleetmap.services.common import refuse_flat_names
+from fleetmap.services.common import refuse_flat_names, secrets_dir
 
 
 def default_data_dir() -> Path:
@@ -21,7 +21,11 @@ def default_data_dir() -> Path:
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(
-        env_prefix="FLEETMAP_PLACE_DB_", env_nested_delimiter="__", env_file=".env", extra="ignore"
+        env_prefix="FLEETMAP_PLACE_DB_",
+        env_nested_delimiter="__",
+        env_file=".env",
+        secrets_dir=secrets_dir(),
+        extra="ignore",
     )
 
     data_dir: Path = Field(default_factory=default_data_dir)

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import pytest
 
 from fleetmap.services.cli import main
@@ -138,3 +139,20 @@ def test_clients_retry_a_503_and_honour_retry_after():
         server.shutdown()
     with PlaceDBClient("http://127.0.0.1:9") as c, pytest.raises(Unavailable, match="Cannot reach"):
         c.health()
+
+
+def test_tokens_from_a_secrets_folder(tmp_path):
+    """Tokens as files (Docker secrets, FLEETMAP_SECRETS_DIR): a real service reads its
+    operator token from one, and refuses requests without it."""
+    secrets = tmp_path / "secrets"
+    secrets.mkdir()
+    (secrets / "fleetmap_place_db_operator_token").write_text("from-a-file\n")
+    env = {"FLEETMAP_SECRETS_DIR": str(secrets)}
+    svc = Service("place-db", tmp_path / "db", env=env).start()
+    try:
+        assert httpx.get(svc.url + "/robots").status_code == 401
+        ok = httpx.get(svc.url + "/robots", headers={"authorization": "Bearer from-a-file"})
+        assert ok.status_code == 200
+        assert "from-a-file" not in svc.read_log()
+    finally:
+        svc.stop()
