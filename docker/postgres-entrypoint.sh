@@ -8,9 +8,11 @@ if [ ! -s "$PGDATA/PG_VERSION" ]; then
   echo "listen_addresses = '*'" >>"$PGDATA/postgresql.conf"
   echo "host all all 0.0.0.0/0 scram-sha-256" >>"$PGDATA/pg_hba.conf"
   pg_ctl -D "$PGDATA" -o "-c listen_addresses='' -k /tmp" -w start >/dev/null
-  psql -v ON_ERROR_STOP=1 -h /tmp -U postgres -q \
-    -c "CREATE ROLE fleetmap LOGIN PASSWORD '$FLEETMAP_PG_PASSWORD'" \
-    -c "CREATE DATABASE fleetmap OWNER fleetmap"
+  # the password as a psql variable, quoted by psql (any character is safe)
+  psql -v ON_ERROR_STOP=1 -v pw="$FLEETMAP_PG_PASSWORD" -h /tmp -U postgres -q <<'SQL'
+CREATE ROLE fleetmap LOGIN PASSWORD :'pw';
+CREATE DATABASE fleetmap OWNER fleetmap;
+SQL
   pg_ctl -D "$PGDATA" -m fast -w stop >/dev/null
   echo "postgres-entrypoint: new cluster with database fleetmap"
 fi
