@@ -9,7 +9,9 @@
 #   scripts/compose.sh prepare           only the engine, compose and the base image
 #   scripts/compose.sh engine-stop       stop dockerd if this script started it
 # FLEETMAP_STACK=postgres: the place database on PostgreSQL as two replicas (127.0.0.1:8100 and
-# :8101) with a postgres service (docker-compose.postgres.yml over docker-compose.yml).
+# :8101) with a postgres service (docker-compose.postgres.yml over docker-compose.yml), as the
+# compose project fleetmap-pg (the SQLite stack is project fleetmap; COMPOSE_PROJECT_NAME
+# overrides either); `down`, `restart` take the same FLEETMAP_STACK.
 # On a machine without a Docker engine it installs Debian's docker.io (and docker-compose where
 # `docker compose` is missing) and starts dockerd in the background; `down` stops that dockerd
 # again (FLEETMAP_KEEP_ENGINE=1 keeps it). Without an image registry it makes a local base
@@ -19,7 +21,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-fleetmap}
 CACHE=${FLEETMAP_DOCKER_CACHE:-/var/cache/fleetmap-docker}
 STATE=${FLEETMAP_DOCKER_STATE:-/run/fleetmap-compose}
 LOCAL_BASE=fleetmap-base:bookworm
@@ -27,11 +28,15 @@ DEFAULT_BASE=python:3.11-slim-bookworm
 INDEX_PORT=${FLEETMAP_INDEX_PORT:-38100}  # fixed: the index URL is part of the build cache key
 SERVICES=(place-db aligner)
 FILES=(-f docker-compose.yml)
+PROJECT=fleetmap
 if [ "${FLEETMAP_STACK:-sqlite}" = postgres ]; then
-  # the place database on PostgreSQL, two replicas (8100, 8101): docker-compose.postgres.yml
+  # the place database on PostgreSQL, two replicas (8100, 8101): docker-compose.postgres.yml,
+  # a project of its own (its volumes apart from the SQLite stack's)
   SERVICES=(postgres place-db place-db-2 aligner)
   FILES+=(-f docker-compose.postgres.yml)
+  PROJECT=fleetmap-pg
 fi
+export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-$PROJECT}
 SUDO=""
 [ "$(id -u)" -eq 0 ] || SUDO="sudo"
 
@@ -266,8 +271,23 @@ wait_healthy() {
   done
 }
 
+# another compose project's place database (the other stack, or compose-test.sh's) holds
+# the ports: say which, rather than compose's "port is already allocated"
+other_stack() {
+  local other
+  other=$(docker ps --filter label=com.docker.compose.service=place-db \
+    --format '{{.Label "com.docker.compose.project"}}' | grep -vx "$COMPOSE_PROJECT_NAME" | head -1) || true
+  [ -z "$other" ] && return 0
+  local how="COMPOSE_PROJECT_NAME=$other scripts/compose.sh down"
+  [ "$other" = fleetmap ] && how="scripts/compose.sh down"
+  [ "$other" = fleetmap-pg ] && how="FLEETMAP_STACK=postgres scripts/compose.sh down"
+  [[ "$other" == *-pg ]] && [ "$other" != fleetmap-pg ] && how="FLEETMAP_STACK=postgres $how"
+  die "compose project $other runs a place database on these ports: take it down first ($how)"
+}
+
 cmd_up() {
   prepare
+  other_stack
   build
   compose up -d --no-build
   wait_healthy "${SERVICES[@]}"
