@@ -2,16 +2,22 @@
 # docker-compose.yml for real: the Docker engine (installed and started if absent), the local
 # base image (made once, cached), both images, both services in containers; then against them
 # the HTTP integration tests, a whole two-robot merge of real data (../shared/data), and a
-# restart of the place database that must keep its data. Everything it started is torn down
-# at the end, whatever happened: the containers, its own data volume, and dockerd if this
-# script started it. Runs as its own compose project (fleetmap-test), so the volume of a stack
-# started by hand (project fleetmap) is never touched; the ports are the same (8100, 8200).
-# Exit 0: all passed (the data part is skipped, with a message, only where ../shared/data is
+# restart of the place database that must keep its data. Then the PostgreSQL stack
+# (docker-compose.postgres.yml: postgres, place-db replicas on 8100 and 8101, aligner): the
+# integration tests against replica 1, the merge through both replicas (client failover URLs),
+# both replicas listing it, SIGKILL of replica 1 (replica 2 and the clients carry on), a
+# restart of postgres (replica 2 serves again without a restart of its own), replica 1 started
+# again. Everything it started is torn down at the end, whatever happened: the containers,
+# its own volumes, and dockerd if this script started it. Runs as its own compose projects
+# (fleetmap-test, fleetmap-test-pg), so the volumes of a stack started by hand (project
+# fleetmap) are never touched; the ports are the same (8100, 8101, 8200).
+# Exit 0: all passed (the data parts are skipped, with a message, only where ../shared/data is
 # absent); anything else failed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-export COMPOSE_PROJECT_NAME=fleetmap-test
+PROJECT=fleetmap-test
+export COMPOSE_PROJECT_NAME=$PROJECT FLEETMAP_STACK=sqlite
 export PLACE_DB_URL=http://127.0.0.1:8100 ALIGNER_URL=http://127.0.0.1:8200
 DATA=${FLEETMAP_DATA:-../shared/data}
 PAIR=sun3d_studyroom # the smallest real two-robot recording: 2 x 50 RGB-D frames
@@ -38,7 +44,8 @@ teardown() {
   trap - EXIT INT TERM
   log "tearing down (exit status so far: $rc)"
   if docker info >/dev/null 2>&1; then
-    FLEETMAP_KEEP_ENGINE=1 bash scripts/compose.sh down || rc=1
+    COMPOSE_PROJECT_NAME=$PROJECT FLEETMAP_STACK=sqlite FLEETMAP_KEEP_ENGINE=1 \
+      bash scripts/compose.sh down || rc=1
     docker volume rm -f "$VOLUME" >/dev/null || rc=1
     COMPOSE_PROJECT_NAME=$PG_PROJECT FLEETMAP_STACK=postgres FLEETMAP_KEEP_ENGINE=1 \
       bash scripts/compose.sh down || rc=1
@@ -59,29 +66,18 @@ trap teardown EXIT
 trap 'exit 130' INT
 trap 'exit 143' TERM
 
-log "engine, compose and base image"
-timeout 600 bash scripts/compose.sh prepare || fail "no Docker engine or base image"
-# a fresh database: no volume left over from an interrupted run
-docker volume rm -f "$VOLUME" >/dev/null
-log "building the images and starting the stack"
-timeout 900 bash scripts/compose.sh up || fail "the stack did not come up healthy"
-
-log "HTTP integration tests against the containers"
-timeout 300 .venv/bin/python -m pytest -p no:dash -q tests/e2e/test_services_e2e.py ||
-  fail "integration tests against the containers"
-
+HAVE_DATA=1
 if [ ! -d "$DATA/$PAIR/robot_a" ] || [ ! -d "$DATA/$PAIR/robot_b" ]; then
-  log "SKIPPED the real-data merge and the restart check: no $DATA/$PAIR (the project's shared data beside the clone)"
+  HAVE_DATA=0
   SKIPPED=" (without the real-data part: no $DATA/$PAIR)"
-  exit 0
 fi
 
-log "a whole merge of $PAIR's two robots through the containers"
-timeout 300 .venv/bin/fleetmap --quiet merge "A=$DATA/$PAIR/robot_a" "B=$DATA/$PAIR/robot_b" \
-  --place-db "$PLACE_DB_URL" --aligner "$ALIGNER_URL" --out "$WORK/merge" ||
-  fail "fleetmap merge against the containers"
-# both merged, B's transform within the data set's tolerance of the ground truth (5 cm, 2 deg)
-.venv/bin/python - "$WORK/merge/report.json" "$DATA/$PAIR/T_a_b.txt" <<'EOF' || fail "report.json"
+# merge OUT PLACE_DB: a whole merge of $PAIR's two robots through the containers; both merged,
+# B's transform within the data set's tolerance of the ground truth (5 cm, 2 deg)
+merge() {
+  timeout 300 .venv/bin/fleetmap --quiet merge "A=$DATA/$PAIR/robot_a" "B=$DATA/$PAIR/robot_b" \
+    --place-db "$2" --aligner "$ALIGNER_URL" --out "$1" || fail "fleetmap merge through $2"
+  .venv/bin/python - "$1/report.json" "$DATA/$PAIR/T_a_b.txt" <<'EOF' || fail "$1/report.json"
 import json, sys
 import numpy as np
 report = json.load(open(sys.argv[1]))
@@ -93,8 +89,10 @@ dr = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 print(f"report.json: A and B merged, B off the ground truth by {dt:.3f} m, {dr:.2f} deg")
 assert dt < 0.05 and dr < 2.0, (dt, dr)
 EOF
+}
 
-robots() { curl -fsS --max-time 10 "$PLACE_DB_URL/robots"; }
+# robots PORT: GET /robots of the place database on 127.0.0.1:PORT
+robots() { curl -fsS --max-time 10 "http://127.0.0.1:$1/robots"; }
 # "A=10 B=13": the keyframe counts of A and B in GET /robots' answer (or, with --report FILE,
 # in report.json)
 keyframes() {
@@ -108,42 +106,83 @@ else:
 print(" ".join(f"{name}={counts.get(name)}" for name in ("A", "B")))
 EOF
 }
-expected=$(keyframes --report "$WORK/merge/report.json") || fail "report.json"
-before=$(keyframes "$(robots)") || fail "GET /robots"
-[ "$before" = "$expected" ] || fail "the place database holds $before, report.json says $expected"
-log "place database holds $before; restarting the place-db container"
-bash scripts/compose.sh restart place-db || fail "restart place-db"
-after=$(keyframes "$(robots)") || fail "GET /robots after the restart"
-[ "$after" = "$before" ] || fail "after the restart the place database holds '$after', before '$before'"
-log "after the restart the place database still holds $after (the volume kept them)"
+
+# --- the SQLite stack (docker-compose.yml) ------------------------------------------------
+log "engine, compose and base image"
+timeout 600 bash scripts/compose.sh prepare || fail "no Docker engine or base image"
+# a fresh database: no volume left over from an interrupted run
+docker volume rm -f "$VOLUME" >/dev/null
+log "building the images and starting the stack"
+timeout 900 bash scripts/compose.sh up || fail "the stack did not come up healthy"
+
+log "HTTP integration tests against the containers"
+timeout 300 .venv/bin/python -m pytest -p no:dash -q tests/e2e/test_services_e2e.py ||
+  fail "integration tests against the containers"
+
+if [ "$HAVE_DATA" = 1 ]; then
+  log "a whole merge of $PAIR's two robots through the containers"
+  merge "$WORK/merge" "$PLACE_DB_URL"
+  expected=$(keyframes --report "$WORK/merge/report.json") || fail "report.json"
+  before=$(keyframes "$(robots 8100)") || fail "GET /robots"
+  [ "$before" = "$expected" ] || fail "the place database holds $before, report.json says $expected"
+  log "place database holds $before; restarting the place-db container"
+  bash scripts/compose.sh restart place-db || fail "restart place-db"
+  after=$(keyframes "$(robots 8100)") || fail "GET /robots after the restart"
+  [ "$after" = "$before" ] || fail "after the restart the place database holds '$after', before '$before'"
+  log "after the restart the place database still holds $after (the volume kept them)"
+else
+  log "SKIPPED the real-data merge and the restart check: no $DATA/$PAIR (the project's shared data beside the clone)"
+fi
 
 # --- the PostgreSQL stack: two place-db replicas over one database (issue 12) ---------------
 log "the PostgreSQL stack: postgres, two place-db replicas (8100, 8101), the aligner"
 FLEETMAP_KEEP_ENGINE=1 bash scripts/compose.sh down || fail "stopping the SQLite stack"
 export COMPOSE_PROJECT_NAME=$PG_PROJECT FLEETMAP_STACK=postgres
-docker volume rm -f "${PG_PROJECT}_postgres-data" >/dev/null
+docker volume rm -f "${PG_PROJECT}_postgres-data" "${PG_PROJECT}_place-db-data" >/dev/null
 timeout 900 bash scripts/compose.sh up || fail "the PostgreSQL stack did not come up healthy"
+log "HTTP integration tests against replica 1"
 timeout 300 .venv/bin/python -m pytest -p no:dash -q tests/e2e/test_services_e2e.py ||
   fail "integration tests against replica 1"
+if [ "$HAVE_DATA" = 0 ]; then
+  log "SKIPPED the merge through the replicas and the failover checks: no $DATA/$PAIR"
+  exit 0
+fi
+
 REPLICAS=http://127.0.0.1:8100,http://127.0.0.1:8101
-timeout 300 .venv/bin/fleetmap --quiet merge "A=$DATA/$PAIR/robot_a" "B=$DATA/$PAIR/robot_b" \
-  --place-db "$REPLICAS" --aligner "$ALIGNER_URL" --out "$WORK/merge-pg" ||
-  fail "fleetmap merge through the replicas"
+log "a whole merge through both replicas ($REPLICAS)"
+merge "$WORK/merge-pg" "$REPLICAS"
 expected=$(keyframes --report "$WORK/merge-pg/report.json") || fail "report.json (PostgreSQL)"
-second() { curl -fsS --max-time 10 http://127.0.0.1:8101/robots; }
-on_two=$(keyframes "$(second)") || fail "GET /robots on replica 2"
+# a container of the PostgreSQL stack by its compose labels (compose v1 and v2 name them apart)
+container() {
+  docker ps -aq --filter "label=com.docker.compose.project=$PG_PROJECT" \
+    --filter "label=com.docker.compose.service=$1"
+}
+# poll PORT: until the replica on PORT lists the expected keyframes again (60 s at most)
+poll() {
+  local got="" deadline=$((SECONDS + 60))
+  while [ "$SECONDS" -lt "$deadline" ]; do
+    got=$(keyframes "$(robots "$1" 2>/dev/null || echo '{"robots": []}')")
+    [ "$got" = "$expected" ] && return 0
+    sleep 0.5
+  done
+  echo "$got"
+  return 1
+}
+on_one=$(keyframes "$(robots 8100)") || fail "GET /robots on replica 1"
+on_two=$(keyframes "$(robots 8101)") || fail "GET /robots on replica 2"
+[ "$on_one" = "$expected" ] || fail "replica 1 holds $on_one, report.json says $expected"
 [ "$on_two" = "$expected" ] || fail "replica 2 holds $on_two, report.json says $expected"
-log "replica 2 holds $on_two; SIGKILL of replica 1"
-docker kill "$(docker ps -qf "name=${PG_PROJECT}_place-db_1")" >/dev/null || fail "docker kill"
-[ "$(keyframes "$(second)")" = "$expected" ] || fail "replica 2 after replica 1 was killed"
+log "both replicas hold $on_two; SIGKILL of replica 1"
+docker kill "$(container place-db)" >/dev/null || fail "docker kill"
+[ "$(keyframes "$(robots 8101)")" = "$expected" ] || fail "replica 2 after replica 1 was killed"
 .venv/bin/fleetmap --quiet overlaps A B --place-db "$REPLICAS" --json >/dev/null ||
   fail "the clients' failover to replica 2"
 log "replica 2 serves alone, the clients fail over; restarting PostgreSQL"
-docker restart "$(docker ps -qf "name=${PG_PROJECT}_postgres_1")" >/dev/null || fail "restart postgres"
-for _ in $(seq 60); do
-  back=$(keyframes "$(second 2>/dev/null || echo '{"robots": []}')")
-  [ "$back" = "$expected" ] && break
-  sleep 1
-done
-[ "$back" = "$expected" ] || fail "replica 2 after the PostgreSQL restart: $back"
-log "after the PostgreSQL restart replica 2 serves $back again, without a restart of its own"
+docker restart "$(container postgres)" >/dev/null || fail "restart postgres"
+back=$(poll 8101) || fail "replica 2 after the PostgreSQL restart: $back"
+.venv/bin/fleetmap --quiet overlaps A B --place-db "$REPLICAS" --json >/dev/null ||
+  fail "the clients after the PostgreSQL restart"
+log "after the PostgreSQL restart replica 2 serves $expected again, without a restart of its own"
+docker start "$(container place-db)" >/dev/null || fail "start replica 1"
+back=$(poll 8100) || fail "replica 1 after its restart: $back"
+log "replica 1, started again after its SIGKILL, serves $expected too"
