@@ -102,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="bearer token for the services (default: $FLEETMAP_TOKEN)",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_data_commands, _service_commands, _pair_commands, _merge_command):
+    for add in (_data_commands, _service_commands, _pair_commands, _merge_command, _live_commands):
         add(sub)
     return parser
 
@@ -156,6 +156,12 @@ def _service_commands(sub) -> None:
         help="place-db on PostgreSQL: postgresql://USER[:PASS]@HOST:PORT/DB, shared by any "
         "number of replicas (default: $FLEETMAP_PLACE_DB_DATABASE, else SQLite in --data-dir)",
     )
+    p.add_argument(
+        "--aligner",
+        metavar="URL",
+        help="place-db: merge robots live through this aligner as their overlaps appear "
+        "(GET /map; default: $FLEETMAP_PLACE_DB_ALIGNER, else no merge worker)",
+    )
     p.set_defaults(func=commands.cmd_serve)
 
     p = sub.add_parser("ingest", help="extract robot folders and POST them to the place db")
@@ -208,6 +214,44 @@ def _merge_command(sub) -> None:
     )
     _add_robot_args(p)
     p.set_defaults(func=commands.cmd_merge)
+
+
+def _live_commands(sub) -> None:
+    """stream and map: the live fleet map (CONTRACT section 6)."""
+    from fleetmap.services import live
+
+    p = sub.add_parser(
+        "stream",
+        help="replay robot recordings into a place database as robots would stream them",
+        description="Every robot at once, keyframes in time order with their RGB-D views, at "
+        "--speed times recording speed. With `fleetmap serve place-db --aligner URL` the "
+        "place database merges the robots as their overlaps appear.",
+    )
+    p.add_argument("robots", nargs="+", metavar="[NAME=]ROBOT_DIR")
+    _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="times recording speed (default 1; 0: as fast as possible)",
+    )
+    p.add_argument("--vocab", help="vocabulary file (must be the service's)")
+    _add_robot_args(p)
+    p.set_defaults(func=live.cmd_stream)
+
+    p = sub.add_parser(
+        "map",
+        help="write the live map of a place database (what merge writes)",
+        description="report.json, merged.ply, overview.png, overlap_matrix.png, "
+        "pose_graph.g2o and trajectories/ (keyframe poses) from GET /map.",
+    )
+    _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
+    p.add_argument("-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR")
+    p.add_argument(
+        "--voxel", type=float, default=0.03, metavar="M", help="merged map voxel size (0.03 m)"
+    )
+    p.set_defaults(func=live.cmd_map)
 
 
 def main(argv: list[str] | None = None) -> int:

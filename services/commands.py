@@ -154,11 +154,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
         overrides = {"data_dir": Path(args.data_dir)} if args.data_dir else {}
         if args.database:
             overrides["database"] = args.database
+        if args.aligner:
+            overrides["aligner"] = args.aligner
         settings = _settings(Settings, **overrides)
         if settings.database is None:
             check_database_file(settings.db_path)  # a damaged file: one line, exit 1
         else:
-            from fleetmap.place.postgres import check_reachable
+            from fleetmap.place.postgres_schema import check_reachable
 
             check_reachable(settings.store)  # down or refused: one line, exit 1
         app = create_app(settings)

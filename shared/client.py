@@ -112,10 +112,31 @@ class _Client:
 class PlaceDBClient(_Client):
     """Client of the place database service."""
 
-    def add_keyframe(self, frame: Frame | bytes, robot_id: str | None = None) -> dict:
+    def add_keyframe(
+        self, frame: Frame | bytes, robot_id: str | None = None, view: dict | None = None
+    ) -> dict:
+        """POST one keyframe; `view` ({"rgb": JPEG, "depth": 16-bit PNG} bytes, from
+        `fleetmap.view.encode_view`) is stored with it for the live map's aligner."""
         data = frame if isinstance(frame, bytes) else encode(frame)
         rid = robot_id or frame.robot_id
-        return self._call("POST", f"/robots/{rid}/keyframes", content=data, headers=OCTET).json()
+        if view is None:
+            kw = {"content": data, "headers": OCTET}
+        else:
+            files = {"frame": ("frame.bin", data, "application/octet-stream")}
+            files |= {k: (k, view[k], "application/octet-stream") for k in ("rgb", "depth")}
+            kw = {"files": files}
+        return self._call("POST", f"/robots/{rid}/keyframes", **kw).json()
+
+    def live_map(self) -> dict:
+        """The live fleet map (`GET /map`)."""
+        return self._call("GET", "/map").json()
+
+    def map_file(self, name: str, **params) -> bytes:
+        """cloud.ply (params: voxel) or overview.png of the live map."""
+        return self._call("GET", f"/map/{name}", params=params, timeout=600).content
+
+    def map_trajectories(self) -> dict:
+        return self._call("GET", "/map/trajectories", timeout=600).json()
 
     def robots(self) -> list[dict]:
         return self._call("GET", "/robots").json()["robots"]

@@ -24,6 +24,7 @@ from fleetmap.camera import Intrinsics
 from fleetmap.dataset import Recording, load_depth, load_rgb
 from fleetmap.frame import Frame
 from fleetmap.mapcloud import view_points
+from fleetmap.view import encode_view
 
 #: Every CLOUD_STRIDE-th pixel of a keyframe's depth goes into the map cloud.
 CLOUD_STRIDE = 4
@@ -45,6 +46,7 @@ class Keyframe:
     frame: Frame
     points: np.ndarray
     colours: np.ndarray
+    view: dict | None = None  # {"rgb": JPEG, "depth": PNG} when asked for (`encode_view`)
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,7 @@ class _Task:
     depth_path: Path
     intrinsics: Intrinsics
     T_map_cam: np.ndarray
+    view: bool = False
 
 
 def _init(vocab_path) -> None:
@@ -75,20 +78,30 @@ def _extract(t: _Task) -> Keyframe:
     points, colours = view_points(
         rgb, depth, t.intrinsics, t.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M
     )
-    return Keyframe(t.robot_id, t.index, frame, points.astype(np.float32), colours)
+    view = encode_view(rgb, depth) if t.view else None
+    return Keyframe(t.robot_id, t.index, frame, points.astype(np.float32), colours, view)
 
 
-def _tasks(recs: list[Recording], kf_index: dict[str, list[int]]) -> list[_Task]:
+def _tasks(
+    recs: list[Recording], kf_index: dict[str, list[int]], views: bool, by_time: bool
+) -> list[_Task]:
     out = []
     for rec in recs:
+        f0 = rec.frames[0].stamp if len(rec) else 0.0
         for i in kf_index[rec.robot_id]:
             f = rec.frames[i]
-            out.append(
-                _Task(
-                    rec.robot_id, i, f.stamp, f.rgb_path, f.depth_path, rec.intrinsics, f.T_map_cam
-                )
+            t = _Task(
+                rec.robot_id,
+                i,
+                f.stamp,
+                f.rgb_path,
+                f.depth_path,
+                rec.intrinsics,
+                f.T_map_cam,
+                views,
             )
-    return out
+            out.append((f.stamp - f0 if by_time else 0.0, t))
+    return [t for _, t in sorted(out, key=lambda x: x[0])] if by_time else [t for _, t in out]
 
 
 @contextlib.contextmanager
@@ -118,11 +131,15 @@ def extract_keyframes(
     kf_index: dict[str, list[int]],
     vocab_path=None,
     workers: int | None = None,
+    views: bool = False,
+    by_time: bool = False,
 ) -> Iterator[Keyframe]:
-    """Every keyframe of every robot, robot by robot in time order, extracted by
-    `workers` processes (default: every core; 1 = in this process). The work starts at
-    once, before the first keyframe is asked for; closing the iterator stops it."""
-    tasks = _tasks(recs, kf_index)
+    """Every keyframe of every robot, robot by robot in time order (`by_time`: all robots
+    interleaved by time since each one's first frame, as they would stream), extracted by
+    `workers` processes (default: every core; 1 = in this process), with their encoded
+    RGB-D views if `views`. The work starts at once, before the first keyframe is asked
+    for; closing the iterator stops it."""
+    tasks = _tasks(recs, kf_index, views, by_time)
     workers = default_workers() if workers is None else workers
     if workers <= 1 or len(tasks) < 8:
         _init(vocab_path)

@@ -42,25 +42,33 @@ def select_views(
     for rec, key, kfs in ((rec_a, "stamp_a", keyframes_a), (rec_b, "stamp_b", keyframes_b)):
         seed = list(dict.fromkeys(frame_at(rec, o[key]) for o in seeds))
         cand = list(dict.fromkeys(seed + list(kfs if kfs is not None else range(len(rec)))))
-        look = np.array([_look_at(rec.frames[i]) for i in cand])
-        d_seed = np.min(np.linalg.norm(look[:, None] - look[None, : len(seed)], axis=2), axis=1)
-        near = [k for k in range(len(cand)) if d_seed[k] <= radius_m]
-        chosen = list(range(min(len(seed), max_views)))
-        dist = np.min(np.linalg.norm(look[near][:, None] - look[chosen][None], axis=2), axis=1)
-        while len(chosen) < min(max_views, len(near)):
-            k = int(np.argmax(dist))
-            if dist[k] <= 0:
-                break
-            chosen.append(near[k])
-            dist = np.minimum(dist, np.linalg.norm(look[near] - look[near[k]], axis=1))
-        out.append(sorted(cand[k] for k in chosen))
+        look = np.array([look_at(rec.frames[i].T_map_cam) for i in cand])
+        out.append(sorted(cand[k] for k in spread(len(seed), look, max_views, radius_m)))
     return out[0], out[1]
 
 
-def _look_at(f: FrameRecord, reach_m: float = 1.5) -> np.ndarray:
-    if f.T_map_cam is None:
+def spread(n_seeds: int, look: np.ndarray, max_views: int, radius_m: float = 3.0) -> list[int]:
+    """Indices of the views to align among candidates whose first `n_seeds` are the verified
+    keyframes (best first): the seeds, then candidates whose look-at points (`look`, (N, 3))
+    lie within `radius_m` of a seed's, by farthest-point sampling, `max_views` in all."""
+    d_seed = np.min(np.linalg.norm(look[:, None] - look[None, :n_seeds], axis=2), axis=1)
+    near = [k for k in range(len(look)) if d_seed[k] <= radius_m]
+    chosen = list(range(min(n_seeds, max_views)))
+    dist = np.min(np.linalg.norm(look[near][:, None] - look[chosen][None], axis=2), axis=1)
+    while len(chosen) < min(max_views, len(near)):
+        k = int(np.argmax(dist))
+        if dist[k] <= 0:
+            break
+        chosen.append(near[k])
+        dist = np.minimum(dist, np.linalg.norm(look[near] - look[near[k]], axis=1))
+    return chosen
+
+
+def look_at(T_map_cam: np.ndarray | None, reach_m: float = 1.5) -> np.ndarray:
+    """The point 1.5 m along a camera's optical axis, in its map frame."""
+    if T_map_cam is None:
         return np.zeros(3)
-    return f.T_map_cam[:3, 3] + reach_m * f.T_map_cam[:3, 2]
+    return T_map_cam[:3, 3] + reach_m * T_map_cam[:3, 2]
 
 
 def _position(f: FrameRecord) -> np.ndarray:

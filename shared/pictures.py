@@ -38,8 +38,9 @@ def _top_down_basis(points: np.ndarray, downs) -> np.ndarray:
     return V[:, [2, 1]]
 
 
-def overview(path: Path, pts, tracks, names, colours, links, report, downs=()) -> None:
-    """Top-down picture: map points per robot, trajectories, overlap links (grey)."""
+def overview(path, pts, tracks, names, colours, links, report, downs=(), title=None) -> None:
+    """Top-down picture: map points per robot, trajectories, overlap links (grey). `path`:
+    a file name or a binary file object (PNG)."""
     plt = _plt()
     allp = np.concatenate(pts)
     c = allp.mean(0)
@@ -59,14 +60,15 @@ def overview(path: Path, pts, tracks, names, colours, links, report, downs=()) -
     ax.grid(True, lw=0.3, alpha=0.5)
     ax.legend(loc="best")
     ax.set_title(
-        f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
+        title
+        or f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
         f"{n_cascade(report)} verified + {len(report['overlaps']) - n_cascade(report)} "
         "co-visible keyframe pairs (verified in grey)\n"
         f"reference frame: {report['reference']}'s map",
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(path)
+    fig.savefig(path, format="png")
     plt.close(fig)
 
 

@@ -24,8 +24,15 @@ def free_port() -> int:
 
 
 class Service:
-    def __init__(self, kind: str, data_dir: Path | None = None, env: dict | None = None):
+    def __init__(
+        self,
+        kind: str,
+        data_dir: Path | None = None,
+        env: dict | None = None,
+        args: list[str] | None = None,
+    ):
         self.kind, self.data_dir, self.env = kind, data_dir, env or {}
+        self.args = list(args or [])
         self.proc: subprocess.Popen | None = None
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -43,6 +50,7 @@ class Service:
         ]
         if self.data_dir is not None:
             cmd += ["--data-dir", str(self.data_dir)]
+        cmd += self.args
         # logs to a file, not a pipe: an unread pipe fills up and blocks the server
         self.log = tempfile.NamedTemporaryFile(
             prefix=f"fleetmap-{self.kind}-", suffix=".log", delete=False

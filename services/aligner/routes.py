@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-import io
 import json
 import uuid
-import warnings
 
-import cv2
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
-from PIL import Image
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
@@ -20,6 +16,7 @@ from fleetmap.correspondences import RGBDView
 from fleetmap.errors import BadInput, PayloadTooLarge, UnknownKeyframe
 from fleetmap.services.aligner import schemas as s
 from fleetmap.services.common import ERROR_RESPONSES, any_token, read_body
+from fleetmap.view import decode_image, image_size
 from fleetmap.wire import ALIGN_META, view_part
 
 router = APIRouter(responses=ERROR_RESPONSES)
@@ -32,38 +29,13 @@ def healthz(request: Request) -> s.Health:
     return s.Health(status="ok", clouds_cached=len(request.app.state.clouds))
 
 
-def image_size(data: bytes, name: str) -> tuple[int, int]:
-    """(width, height) from an encoded image's header alone, nothing decoded (Pillow reads
-    the header lazily): the pixel limit is checked before any memory is spent."""
-    if not data:
-        raise BadInput(f"{name}: empty file")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(io.BytesIO(data)) as im:
-                return im.size
-    except Image.DecompressionBombError as exc:
-        raise PayloadTooLarge(f"{name}: {exc}") from exc
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise BadInput(f"{name}: not an image OpenCV or Pillow can read ({exc})") from exc
-
-
-def _decode(data: bytes, name: str, depth: bool) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED if depth else 1)
-    if img is None:
-        raise BadInput(f"{name}: image does not decode")
-    if depth and (img.dtype != np.uint16 or img.ndim != 2):
-        raise BadInput(f"{name}: depth must be 16-bit single channel, got {img.dtype} {img.shape}")
-    return img
-
-
 def _view(files: dict[str, bytes], name: str, vm: s.ViewMeta) -> RGBDView:
     rgb_part, depth_part = (
         view_part(name[0], int(name[1:]), "rgb"),
         view_part(name[0], int(name[1:]), "depth"),
     )
-    rgb = _decode(files[rgb_part], rgb_part, False)
-    depth = _decode(files[depth_part], depth_part, True)
+    rgb = decode_image(files[rgb_part], rgb_part, False)
+    depth = decode_image(files[depth_part], depth_part, True)
     try:
         return RGBDView(
             rgb, depth, Intrinsics(**vm.intrinsics.model_dump()), np.array(vm.T_map_cam), vm.stamp

@@ -11,6 +11,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
+from fleetmap.place.live import LiveParams
 from fleetmap.services.common import refuse_flat_names, secrets_dir
 
 
@@ -38,9 +39,15 @@ class Settings(BaseSettings):
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = MAX_FRAME_BYTES
+    max_view_bytes: int = 16 * 1024 * 1024  # a keyframe's colour and depth images together
     # the cascade's parameters (thesis Algorithm 3), nested:
     # FLEETMAP_PLACE_DB_CASCADE__GIST_THRESHOLD=0.7, FLEETMAP_PLACE_DB_CASCADE__MATCH__RATIO=0.8
     cascade: CascadeParams = CascadeParams()
+    # the live map: the aligner the merge worker sends robot pairs to (unset: no merge
+    # worker; the map is still served from the store), its token, and when pairs are aligned
+    aligner: str | None = None
+    aligner_token: SecretStr | None = None
+    live: LiveParams = LiveParams()
     # coarse codebook upkeep
     auto_retrain: bool = True
     background_overlaps: bool = True

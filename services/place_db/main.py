@@ -8,7 +8,10 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from fleetmap.place import PlaceDB, RetrainPolicy
+from fleetmap.place.live import LiveMap
+from fleetmap.place.live_view import MapRenderer
 from fleetmap.services import common
+from fleetmap.services.place_db import live_routes
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.routes import router
 from fleetmap.vocabulary import load_vocabulary
@@ -30,6 +33,23 @@ def single_threaded_kernels() -> None:
     threadpool_limits(1)  # OpenBLAS / OpenMP of numpy and scipy
 
 
+def start_live_map(db: PlaceDB, settings: Settings) -> LiveMap | None:
+    """The merge worker, when an aligner is configured (`--aligner URL`)."""
+    if not settings.aligner:
+        return None
+    from fleetmap.client import AlignerClient
+
+    token = settings.aligner_token or settings.operator_token
+    client = AlignerClient(
+        settings.aligner, timeout=900, token=token.get_secret_value() if token else None
+    )
+    live = LiveMap(db, client.align, settings.live)
+    live.client = client
+    live.start()
+    log.warning("live map: merging robots through the aligner at %s", settings.aligner)
+    return live
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
 
@@ -47,7 +67,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         where = app.state.db.stats()["db_path"]
         log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)
         log.warning("place database: %s", common.auth_summary(settings))
+        app.state.renderer = MapRenderer(app.state.db)
+        app.state.live = start_live_map(app.state.db, settings)
         yield
+        if app.state.live is not None:
+            app.state.live.stop()
+            app.state.live.client.close()
         app.state.db.close()
 
     app = FastAPI(
@@ -62,4 +87,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     common.install(app)
     common.install_docs(app)
     app.include_router(router)
+    app.include_router(live_routes.router)
     return app

@@ -10,7 +10,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, Security
 from starlette.concurrency import run_in_threadpool
 
-from fleetmap.errors import BadInput, Forbidden, Unauthorized
+from fleetmap.errors import BadInput, Forbidden, PayloadTooLarge, Unauthorized
 from fleetmap.frame import decode
 from fleetmap.place import Candidate, PlaceDB
 from fleetmap.services.common import (
@@ -32,6 +32,34 @@ FRAME_BODY = {
         "description": "An encoded frame structure (shared/frame.py, version 1).",
     }
 }
+
+
+INGEST_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/octet-stream": FRAME_BODY["requestBody"]["content"][
+                "application/octet-stream"
+            ],
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["frame"],
+                    "properties": {
+                        "frame": {"type": "string", "format": "binary"},
+                        "rgb": {"type": "string", "format": "binary"},
+                        "depth": {"type": "string", "format": "binary"},
+                    },
+                }
+            },
+        },
+        "description": "An encoded frame structure, alone, or with its RGB-D view as "
+        "multipart/form-data: `frame`, `rgb` (colour, JPEG) and `depth` (16-bit PNG, the "
+        "frame's depth units); the frame must then carry its pose and intrinsics.",
+    }
+}
+INGEST_TYPES = ("application/octet-stream", "multipart/form-data")
+VIEW_FIELDS = ("frame", "rgb", "depth")
 
 
 def _db(request: Request) -> PlaceDB:
@@ -69,21 +97,48 @@ def healthz(request: Request) -> s.Health:
     "/robots/{robot_id}/keyframes",
     status_code=201,
     response_model=s.KeyframeCreated,
-    openapi_extra=FRAME_BODY,
+    openapi_extra=INGEST_BODY,
     responses={200: {"model": s.KeyframeCreated}},
     dependencies=[Security(bearer)],  # the robot's own token or the operator's
 )
 async def ingest(robot_id: str, request: Request, response: Response) -> s.KeyframeCreated:
-    """Store one keyframe's frame structure durably; 201 once it is on disk."""
+    """Store one keyframe's frame structure (and its RGB-D view, if sent) durably; 201 once
+    it is on disk."""
     check_access(request, robot=robot_id)  # before the body is read
-    body = await read_body(
-        request, request.app.state.settings.max_body_bytes, ("application/octet-stream",)
-    )
-    kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body)
+    st = request.app.state.settings
+    body = await read_body(request, st.max_body_bytes + st.max_view_bytes, INGEST_TYPES)
+    view = None
+    if body and request.headers.get("content-type", "").lower().startswith("multipart/"):
+        body, view = await _keyframe_parts(request)
+    if len(body) > st.max_body_bytes:
+        raise PayloadTooLarge(f"Frame of {len(body)} bytes exceeds {st.max_body_bytes}")
+    kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body, view)
     if not created:
         response.status_code = 200
     info = _db(request).keyframe_info(kf_id)
     return s.KeyframeCreated(id=kf_id, robot_id=robot_id, stamp=info["stamp"], created=created)
+
+
+async def _keyframe_parts(request: Request) -> tuple[bytes, dict[str, bytes] | None]:
+    """The frame and the view's images of a multipart keyframe."""
+    form = await request.form(max_files=len(VIEW_FIELDS), max_fields=len(VIEW_FIELDS))
+    try:
+        unknown = sorted(set(form.keys()) - set(VIEW_FIELDS))
+        if unknown:
+            raise BadInput(f"Unknown fields {unknown}: send {', '.join(VIEW_FIELDS)}")
+        parts = {}
+        for name in VIEW_FIELDS:
+            part = form.get(name)
+            if isinstance(part, str):
+                raise BadInput(f"Field {name!r} must be a file part")
+            if part is not None:
+                parts[name] = await part.read()
+    finally:
+        await form.close()
+    if "frame" not in parts:
+        raise BadInput("Missing file field 'frame'")
+    frame = parts.pop("frame")
+    return frame, parts or None
 
 
 @router.get("/robots", response_model=s.Robots, dependencies=[Depends(operator_only)])

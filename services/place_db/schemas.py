@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, Field
 
 from fleetmap.services.common import Matrix4
@@ -140,3 +142,46 @@ class Retrained(BaseModel):
     cluster_max: int
     cluster_mean: float
     seconds: float
+
+
+ViewPart = Literal["rgb", "depth"]
+
+
+class KeyframeView(BaseModel):
+    keyframe_id: int
+    robot_id: str
+    stamp: float
+    width: int
+    height: int
+    intrinsics: dict[str, float]
+    T_map_cam: list[list[float]]
+    rgb_type: str = Field(description="media type of the colour image (image/jpeg, image/png)")
+    rgb: str = Field(description="the colour image as posted, base64")
+    depth: str = Field(description="the 16-bit depth PNG as posted, base64")
+
+
+class Unmerged(BaseModel):
+    robot: str
+    reason: str
+
+
+class RobotState(BaseModel):
+    robot: str
+    keyframes: int
+    views: int = Field(description="keyframes stored with their RGB-D view")
+    state: Literal["reference", "merged", "unmerged"]
+
+
+class LiveMap(BaseModel):
+    version: int = Field(description="changes only when the placement does; 0: none yet")
+    reference: str | None = Field(description="the robot whose map frame is the global one")
+    transforms: dict[str, list[list[float]]] = Field(
+        description="T_ref_R per placed robot R: maps R's map points into the reference's "
+        "(row-major 4x4, metres)"
+    )
+    unmerged: list[Unmerged]
+    robots: list[str] = Field(description="every robot known, in order of arrival")
+    updated_at: float | None = Field(description="unix time of the last placement change")
+    fleet: list[RobotState]
+    pairs: list[dict] = Field(description="the merge worker's state of each robot pair")
+    overlaps: list[OverlapEdge]

@@ -36,6 +36,7 @@ from fleetmap.place.types import (
     RetrainPolicy,
 )
 from fleetmap.place.worker import OverlapWorker
+from fleetmap.view import MAX_VIEW_PIXELS, check_view
 from fleetmap.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -118,18 +119,23 @@ class PlaceDB:
 
     # --- keyframes ------------------------------------------------------------------
 
-    def add_keyframe(self, robot_id: str, data: bytes) -> tuple[int, bool]:
-        """Store one encoded frame for robot_id; returns (keyframe id, newly created).
+    def add_keyframe(
+        self, robot_id: str, data: bytes, view: dict[str, bytes] | None = None
+    ) -> tuple[int, bool]:
+        """Store one encoded frame for robot_id, with its RGB-D view if given ({"rgb",
+        "depth"}: `fleetmap.view`); returns (keyframe id, newly created).
 
         Re-sending the identical frame is idempotent; a different frame at the same
         stamp is a Conflict. Returns only once the keyframe is durably committed.
         """
-        return self.add_keyframes(robot_id, [data])[0]
+        return self.add_keyframes(robot_id, [data], [view])[0]
 
-    def add_keyframes(self, robot_id: str, datas: list[bytes]) -> list[tuple[int, bool]]:
-        """Store encoded frames of one robot durably; returns (id, created) for each."""
+    def add_keyframes(self, robot_id: str, datas: list[bytes], views=None) -> list[tuple]:
+        """Store encoded frames (and views) of one robot durably; (id, created) for each."""
         check_robot_id(robot_id)
         items = [Pending(robot_id, self._check(robot_id, d), bytes(d)) for d in datas]
+        for it, view in zip(items, views or [], strict=False):
+            it.view = None if view is None else check_view(it.frame, view, MAX_VIEW_PIXELS)
         self.store.add_frames(items, self._committed)
         for it in items:
             if it.error is not None:
@@ -186,6 +192,14 @@ class PlaceDB:
 
     def keyframe_info(self, kf_id: int) -> dict:
         return self.store.keyframe_info(kf_id)
+
+    def view_bytes(self, kf_id: int) -> tuple[bytes, bytes]:
+        """A keyframe's stored (colour, depth) images; UnknownKeyframe without a view."""
+        view = self.store.view_bytes(kf_id)
+        if view is None:
+            self.store.keyframe_info(kf_id)  # UnknownKeyframe if there is no such keyframe
+            raise UnknownKeyframe(f"Keyframe {kf_id} was posted without its RGB-D view")
+        return view
 
     # --- queries --------------------------------------------------------------------
 

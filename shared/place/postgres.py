@@ -37,17 +37,6 @@ log = logging.getLogger(__name__)
 MAX_ATTEMPTS = 3  # a keyframe whose overlap detection raised this often is left aside
 
 
-def check_reachable(url: str, timeout_s: int = 5) -> None:
-    """Connect once; Unavailable naming the server (never the password) if it fails."""
-    import psycopg
-
-    try:
-        psycopg.connect(url, connect_timeout=timeout_s).close()
-    except psycopg.Error as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise Unavailable(f"PostgreSQL at {schema.redacted(url)} is unreachable: {first}") from None
-
-
 class PostgresStore:
     """Robots, keyframes, overlaps, links and codebooks in one PostgreSQL database."""
 
@@ -76,7 +65,7 @@ class PostgresStore:
             open=False,
             name="fleetmap-place-db",
         )
-        check_reachable(url)  # one clear line, not a pool timeout, when it is down
+        schema.check_reachable(url)  # one clear line, not a pool timeout, when it is down
         try:
             self.pool.open(wait=True, timeout=30)
         except Exception as exc:
@@ -374,6 +363,22 @@ class PostgresStore:
             then(ids)
             self.forget_robot(code)
         return len(ids)
+
+    def view_bytes(self, kf_id: int) -> tuple[bytes, bytes] | None:
+        row = self._one("SELECT rgb, depth FROM views WHERE kf=%s", (int(kf_id),))
+        return None if row is None else (bytes(row[0]), bytes(row[1]))
+
+    def view_ids(self, code: int) -> list[int]:
+        sql = "SELECT k.id FROM keyframes k JOIN views v ON v.kf = k.id WHERE k.robot=%s "
+        return [r[0] for r in self._all(sql + "ORDER BY k.stamp", (code,))]
+
+    def live_get(self, key: str) -> str | None:
+        row = self._one("SELECT value FROM live WHERE key=%s", (key,))
+        return None if row is None else row[0]
+
+    def live_put(self, key: str, value: str) -> None:
+        with self.conn() as con:
+            con.execute(schema.LIVE_PUT, (key, value))
 
     def ping(self) -> bool:
         try:

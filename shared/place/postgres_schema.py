@@ -8,7 +8,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from fleetmap.errors import BadInput, Conflict
+from fleetmap.errors import BadInput, Conflict, Unavailable
 from fleetmap.place.store import LinkRow, Pending, WinnerRow
 
 SCHEMA_VERSION = 1
@@ -18,6 +18,7 @@ LOCKS = {
     "ingest": 0x464D_0002,  # keyframe ids in commit order
     "links": 0x464D_0003,
     "retraining": 0x464D_0004,
+    "live map": 0x464D_0005,
 }
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -48,9 +49,14 @@ CREATE TABLE IF NOT EXISTS links (
 CREATE TABLE IF NOT EXISTS codebooks (
     id SERIAL PRIMARY KEY, created DOUBLE PRECISION NOT NULL, n_clusters INTEGER NOT NULL,
     dim INTEGER NOT NULL, centroids BYTEA NOT NULL);
+CREATE TABLE IF NOT EXISTS views (
+    kf BIGINT PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+    rgb BYTEA NOT NULL, depth BYTEA NOT NULL);
+CREATE TABLE IF NOT EXISTS live (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS deletions (
     id BIGSERIAL PRIMARY KEY, robot INTEGER NOT NULL, created DOUBLE PRECISION NOT NULL);
 """
+LIVE_PUT = "INSERT INTO live VALUES (%s, %s) ON CONFLICT (key) DO UPDATE SET value = EXCLUDED.value"
 OVERLAPS_SQL = (
     "SELECT o.kf_a, ka.stamp, o.robot_a, o.kf_b, kb.stamp, o.robot_b, o.inliers, o.matches, "
     "o.source FROM overlap_pairs o JOIN keyframes ka ON ka.id=o.kf_a "
@@ -131,6 +137,7 @@ def insert_frames(con, code: int, items: list[Pending], added: dict) -> None:
             )
         elif key[1] in stored:
             it.result = (int(stored[key[1]][0]), False)
+            _insert_view(con, it)
         elif first is not None:
             twins.append(it)  # sent twice in this batch: the first one's id
         else:
@@ -147,8 +154,18 @@ def insert_frames(con, code: int, items: list[Pending], added: dict) -> None:
         for it in fresh:
             it.result = (int(cur.fetchone()[0]), True)
             cur.nextset()
+        for it in fresh:
+            _insert_view(con, it)
     for it in twins:
         it.result = (added[(it.robot_id, it.frame.stamp)].result[0], False)
+
+
+def _insert_view(con, it: Pending) -> None:
+    if it.view is not None:
+        con.execute(
+            "INSERT INTO views VALUES (%s, %s, %s) ON CONFLICT (kf) DO NOTHING",
+            (it.result[0], *it.view),
+        )
 
 
 def _keyframe_row(code: int, it: Pending) -> tuple:
@@ -221,3 +238,14 @@ def delete_robot(con, code: int) -> np.ndarray:
     con.execute("DELETE FROM robots WHERE id=%s", (code,))
     con.execute("INSERT INTO deletions (robot, created) VALUES (%s, %s)", (code, time.time()))
     return ids
+
+
+def check_reachable(url: str, timeout_s: int = 5) -> None:
+    """Connect once; Unavailable naming the server (never the password) if it fails."""
+    import psycopg
+
+    try:
+        psycopg.connect(url, connect_timeout=timeout_s).close()
+    except psycopg.Error as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise Unavailable(f"PostgreSQL at {redacted(url)} is unreachable: {first}") from None

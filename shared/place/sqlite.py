@@ -159,6 +159,7 @@ class SQLiteStore:
         if row is not None:
             if bytes(row[1]) == it.data:
                 it.result = (int(row[0]), False)
+                self._insert_view(it, "INSERT OR IGNORE")
             else:
                 it.error = Conflict(
                     f"Robot {it.robot_id!r} already has a different keyframe at stamp {f.stamp}"
@@ -179,6 +180,29 @@ class SQLiteStore:
         )
         it.result = (int(cur.lastrowid), True)
         added[(it.robot_id, f.stamp)] = it
+        self._insert_view(it, "INSERT")
+
+    def _insert_view(self, it: Pending, verb: str) -> None:
+        if it.view is not None:
+            self._db.execute(f"{verb} INTO views VALUES (?, ?, ?)", (it.result[0], *it.view))
+
+    def view_bytes(self, kf_id: int) -> tuple[bytes, bytes] | None:
+        """A keyframe's stored (colour, depth) images; None if posted without them."""
+        row = self._read("SELECT rgb, depth FROM views WHERE kf=?", (int(kf_id),)).fetchone()
+        return None if row is None else (bytes(row[0]), bytes(row[1]))
+
+    def view_ids(self, code: int) -> list[int]:
+        """The robot's keyframes stored with a view, in time order."""
+        sql = "SELECT k.id FROM keyframes k JOIN views v ON v.kf = k.id WHERE k.robot=? "
+        return [r[0] for r in self._read(sql + "ORDER BY k.stamp", (code,))]
+
+    def live_get(self, key: str) -> str | None:
+        row = self._read("SELECT value FROM live WHERE key=?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def live_put(self, key: str, value: str) -> None:
+        with self._write_lock:
+            self._db.execute("INSERT OR REPLACE INTO live VALUES (?, ?)", (key, value))
 
     def frame_bytes(self, kf_id: int) -> bytes:
         """The stored encoded frame of a keyframe, its CRC-32 checked."""
@@ -260,7 +284,7 @@ class SQLiteStore:
         """Store one keyframe's verified winners and link overlaps and mark it processed;
         False when a keyframe involved was deleted meanwhile (nothing stored)."""
         now = time.time()
-        with self._write_lock, _Transaction(self._db) as tx:
+        with self._write_lock, files.Transaction(self._db) as tx:
             try:
                 for kf_b, code_b, inliers, matches in winners:
                     self._db.execute(
@@ -272,14 +296,14 @@ class SQLiteStore:
                 self._insert_link_rows(links, now)
                 self._db.execute("UPDATE keyframes SET processed=1 WHERE id=?", (kf_id,))
             except sqlite3.IntegrityError:
-                raise _Rollback() from None
+                raise files.Rollback() from None
         return not tx.rolled_back
 
     def put_link(self, code_a: int, code_b: int, T_a_b: np.ndarray, rows: list[LinkRow]) -> int:
         """Store the link (replacing the pair's earlier one and its link overlaps) and the
         link overlaps not already known; returns how many were added."""
         now = time.time()
-        with self._write_lock, _Transaction(self._db) as tx:
+        with self._write_lock, files.Transaction(self._db) as tx:
             try:
                 self._db.execute(
                     "INSERT OR REPLACE INTO links VALUES (?, ?, ?, ?)",
@@ -292,7 +316,7 @@ class SQLiteStore:
                 )
                 n = self._insert_link_rows(rows, now)
             except sqlite3.IntegrityError:  # a robot deleted while the link was made
-                raise _Rollback() from None
+                raise files.Rollback() from None
         if tx.rolled_back:
             raise Conflict("A robot was deleted while the link was registered")
         return n
@@ -332,7 +356,7 @@ class SQLiteStore:
                 [r[0] for r in self._db.execute("SELECT id FROM keyframes WHERE robot=?", (code,))],
                 dtype=np.int64,
             )
-            with _Transaction(self._db):
+            with files.Transaction(self._db):
                 self._db.execute("DELETE FROM overlaps WHERE robot_a=? OR robot_b=?", (code, code))
                 self._db.execute("DELETE FROM links WHERE robot_a=? OR robot_b=?", (code, code))
                 self._db.execute("DELETE FROM keyframes WHERE robot=?", (code,))
@@ -368,27 +392,3 @@ class SQLiteStore:
         if conn is None:
             conn = self._local.conn = files.connect(self.path)
         return conn.execute(sql, args)
-
-
-class _Rollback(Exception):
-    """Raised inside a transaction to roll it back quietly."""
-
-
-class _Transaction:
-    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK on any exception (caller holds the write
-    lock); a `_Rollback` is swallowed and noted in `rolled_back`."""
-
-    def __init__(self, db: sqlite3.Connection):
-        self.db, self.rolled_back = db, False
-
-    def __enter__(self) -> _Transaction:
-        self.db.execute("BEGIN IMMEDIATE")
-        return self
-
-    def __exit__(self, kind, exc, tb) -> bool:
-        if kind is None:
-            self.db.execute("COMMIT")
-            return False
-        self.db.execute("ROLLBACK")
-        self.rolled_back = kind is _Rollback
-        return self.rolled_back

@@ -46,6 +46,10 @@ CREATE TABLE IF NOT EXISTS links (
 CREATE TABLE IF NOT EXISTS codebooks (
     id INTEGER PRIMARY KEY AUTOINCREMENT, created REAL NOT NULL, n_clusters INTEGER NOT NULL,
     dim INTEGER NOT NULL, centroids BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS views (
+    kf INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+    rgb BLOB NOT NULL, depth BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS live (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
 
 
@@ -186,3 +190,27 @@ def check_database_file(path: Path) -> None:
             f"{path} is damaged or not a place database ({result}): restore it from a backup "
             "or move it away to start an empty one"
         )
+
+
+class Rollback(Exception):
+    """Raised inside a transaction to roll it back quietly."""
+
+
+class Transaction:
+    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK on any exception (caller holds the write
+    lock); a `Rollback` is swallowed and noted in `rolled_back`."""
+
+    def __init__(self, db: sqlite3.Connection):
+        self.db, self.rolled_back = db, False
+
+    def __enter__(self) -> Transaction:
+        self.db.execute("BEGIN IMMEDIATE")
+        return self
+
+    def __exit__(self, kind, exc, tb) -> bool:
+        if kind is None:
+            self.db.execute("COMMIT")
+            return False
+        self.db.execute("ROLLBACK")
+        self.rolled_back = kind is Rollback
+        return self.rolled_back

@@ -1,0 +1,192 @@
+"""`fleetmap stream` (recordings replayed as robots would stream them) and `fleetmap map`
+(the live map's files, as `fleetmap merge` writes them)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from fleetmap.errors import BadInput
+
+DONE = object()
+
+
+def stream(recs, kf_index, client, vocab_path, speed: float, quiet: bool, workers=None) -> dict:
+    """Post every robot's keyframes with their views, each robot from its own thread in
+    time order, all starting together; keyframe k of a robot is posted (its stamp - the
+    robot's first stamp) / speed seconds after the start (speed 0: as fast as extracted).
+    The robots' first keyframes go in the order given, so the first robot is the first
+    the place database knows (the live map's reference when it is merged).
+    Returns {robot: keyframes posted} and the seconds to the last acknowledgement."""
+    from fleetmap.extract_pool import extract_keyframes
+
+    ids = [r.robot_id for r in recs]
+    first = {r.robot_id: r.frames[0].stamp if len(r) else 0.0 for r in recs}
+    total = sum(map(len, kf_index.values()))
+    queues = {r: queue.Queue(maxsize=64) for r in ids}
+    registered = [threading.Event() for _ in ids]
+    counts = dict.fromkeys(ids, 0)
+    errors: list[BaseException] = []
+    bar = tqdm(total=total, desc="stream", unit="kf", disable=quiet)
+    t0 = time.monotonic()
+
+    def post(k: int, robot: str) -> None:
+        try:
+            while (kf := queues[robot].get()) is not DONE:
+                if speed > 0:
+                    time.sleep(
+                        max(0.0, t0 + (kf.frame.stamp - first[robot]) / speed - time.monotonic())
+                    )
+                if counts[robot] == 0 and k > 0:
+                    registered[k - 1].wait()
+                client.add_keyframe(kf.frame, view=kf.view)
+                counts[robot] += 1
+                registered[k].set()
+                bar.update()
+        except BaseException as exc:  # reported by the main thread
+            errors.append(exc)
+        finally:
+            registered[k].set()
+
+    posters = [threading.Thread(target=post, args=(k, r), daemon=True) for k, r in enumerate(ids)]
+    for p in posters:
+        p.start()
+    keyframes = extract_keyframes(recs, kf_index, vocab_path, workers, views=True, by_time=True)
+    try:
+        _feed(keyframes, queues, errors)
+    finally:
+        for r in ids:
+            queues[r].put(DONE)
+        for p in posters:
+            p.join()
+        bar.close()
+    if errors:
+        raise errors[0]
+    return {"keyframes": counts, "seconds": time.monotonic() - t0}
+
+
+def _feed(keyframes, queues: dict, errors: list) -> None:
+    """Hand each extracted keyframe to its robot's poster; stop at the first failure."""
+    try:
+        for kf in keyframes:
+            while not errors:
+                try:
+                    queues[kf.robot_id].put(kf, timeout=0.5)
+                    break
+                except queue.Full:
+                    continue
+            if errors:
+                return
+    finally:
+        if hasattr(keyframes, "close"):
+            keyframes.close()
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    """Replay robot recordings into a place database as the robots would stream them."""
+    from fleetmap.client import PlaceDBClient
+    from fleetmap.extract import keyframe_indices
+    from fleetmap.services.commands import _policy, _read_robots
+    from fleetmap.services.merge import checked_vocabulary
+
+    if args.speed < 0:
+        raise BadInput(f"--speed must be 0 (as fast as possible) or positive, got {args.speed}")
+    recs = _read_robots(args, args.robots)
+    ids = [r.robot_id for r in recs]
+    if len(set(ids)) != len(ids):
+        raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
+    kf_index = {r.robot_id: keyframe_indices(r, _policy(args)) for r in recs}
+    with PlaceDBClient(args.place_db, token=args.token) as client:
+        checked_vocabulary(client, args.vocab)
+        done = stream(recs, kf_index, client, args.vocab, args.speed, args.quiet)
+        m = client.live_map()
+    for r, n in done["keyframes"].items():
+        print(f"{r}: {n} keyframes streamed")
+    print(
+        f"streamed in {done['seconds']:.1f} s; live map version {m['version']}: "
+        f"{len(m['transforms'])} of {len(m['robots'])} robots placed so far "
+        f"(fleetmap map --place-db {args.place_db.split(',')[0]} -o DIR writes it)"
+    )
+    return 0
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    """Write the live map's files: what `fleetmap merge` writes."""
+    from fleetmap.client import PlaceDBClient
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out} exists and is not a folder")
+    if args.voxel <= 0:
+        raise BadInput(f"--voxel must be positive, got {args.voxel}")
+    with PlaceDBClient(args.place_db, token=args.token, timeout=600) as client:
+        m = client.live_map()
+        cloud = client.map_file("cloud.ply", voxel=max(args.voxel, 0.02))
+        picture = client.map_file("overview.png")
+        tracks = client.map_trajectories()
+    write_live_outputs(out, m, cloud, picture, tracks, args.place_db)
+    print(
+        f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
+        f"in {m['reference']}'s frame; results: {out / 'report.json'}, {out / 'merged.ply'}, "
+        f"{out / 'overview.png'}"
+    )
+    for u in m["unmerged"]:
+        print(f"unmerged {u['robot']}: {u['reason']}")
+    return 0
+
+
+def write_live_outputs(out: Path, m: dict, cloud: bytes, picture: bytes, tracks, source) -> None:
+    """report.json, merged.ply, overview.png, overlap_matrix.png, pose_graph.g2o and
+    trajectories/ (keyframe poses: the live map holds keyframes only)."""
+    from fleetmap import pictures
+    from fleetmap.services.outputs import REPORT_VERSION, TRANSFORM_CONVENTION, write_g2o
+
+    (out / "trajectories").mkdir(parents=True, exist_ok=True)
+    (out / "merged.ply").write_bytes(cloud)
+    (out / "overview.png").write_bytes(picture)
+    for r, rows in tracks.items():
+        lines = [f"# timestamp tx ty tz qx qy qz qw (camera to {m['reference']}'s map frame)"]
+        lines += [f"{row[0]:.6f} " + " ".join(f"{x:.6f}" for x in row[1:]) for row in rows]
+        (out / "trajectories" / f"{r}.txt").write_text("\n".join(lines) + "\n")
+    placed = {r: np.array(T) for r, T in m["transforms"].items()}
+    fits = [p for p in m["pairs"] if p["status"] == "merged"]
+    edges = {
+        (p["robot_a"], p["robot_b"]): {"T_a_b": np.array(p["transform"]), "inliers": p["inliers"]}
+        for p in fits
+        if p["robot_a"] in placed and p["robot_b"] in placed
+    }
+    names = ([m["reference"]] if m["reference"] else []) + [
+        r for r in m["robots"] if r != m["reference"]
+    ]
+    write_g2o(out / "pose_graph.g2o", names, placed, edges)
+    overlaps = [
+        {"robot_a": e["robot_a"], "robot_b": e["robot_b"]}
+        for e in m["overlaps"]
+        for _ in range(e["pairs"])
+    ]
+    report = {
+        "schema_version": REPORT_VERSION,
+        "reference": m["reference"],
+        "transform_convention": TRANSFORM_CONVENTION,
+        "source": {"place_db": source.split(",")[0], "live_map_version": m["version"]},
+        "robots": {
+            f["robot"]: {k: f[k] for k in ("keyframes", "views", "state")} for f in m["fleet"]
+        },
+        "transforms": m["transforms"],
+        "unmerged": [u["robot"] for u in m["unmerged"]],
+        "unmerged_reasons": {u["robot"]: u["reason"] for u in m["unmerged"]},
+        "fits": m["pairs"],
+        "overlap_graph": m["overlaps"],
+        "pose_graph": {"edges": len(edges)},
+        "updated_at": m["updated_at"],
+    }
+    if names:
+        pictures.overlap_matrix(out / "overlap_matrix.png", names, {"overlaps": overlaps})
+    (out / "report.json").write_text(json.dumps(report, indent=2))

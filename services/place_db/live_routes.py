@@ -1,0 +1,131 @@
+"""Live map routes of the place database: the map, its cloud, trajectories and picture, the
+stored views, and the operator page."""
+
+from __future__ import annotations
+
+import base64
+
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi.responses import HTMLResponse
+from starlette.concurrency import run_in_threadpool
+
+from fleetmap.mapcloud import ply_bytes
+from fleetmap.place.live_view import BASE_VOXEL_M, map_document
+from fleetmap.services.common import ERROR_RESPONSES, operator_only
+from fleetmap.services.place_db import schemas as s
+from fleetmap.services.place_db.page import PAGE
+from fleetmap.view import media_type
+
+router = APIRouter(responses=ERROR_RESPONSES)
+KF_ID = Path(ge=1, le=2**63 - 1)
+
+
+@router.get(
+    "/map",
+    response_model=s.LiveMap,
+    response_model_exclude_none=True,
+    dependencies=[Depends(operator_only)],
+)
+async def live_map(request: Request) -> s.LiveMap:
+    """The live fleet map: each placed robot's transform into the reference robot's map
+    frame (`transforms[R]` maps R's map points into the reference's), the robots not placed
+    with the reason, and the merge worker's pair states. `version` changes only when the
+    placement does."""
+    return s.LiveMap(**await run_in_threadpool(map_document, request.app.state.db))
+
+
+@router.get(
+    "/map/cloud.ply",
+    dependencies=[Depends(operator_only)],
+    response_class=Response,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+async def map_cloud(
+    request: Request,
+    voxel: float = Query(0.05, ge=BASE_VOXEL_M, le=1.0, description="voxel size in metres"),
+) -> Response:
+    """The merged cloud of the placed robots (binary PLY: x y z, image colour, per-point
+    `robot` index in the order of the map's `robots`), in the reference frame."""
+
+    def build() -> bytes:
+        app = request.app.state
+        m = map_document(app.db)
+        return ply_bytes(*app.renderer.cloud(m, voxel))
+
+    body = await run_in_threadpool(build)
+    return Response(body, media_type="application/octet-stream")
+
+
+@router.get(
+    "/map/overview.png",
+    dependencies=[Depends(operator_only)],
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}},
+)
+async def map_overview(request: Request) -> Response:
+    """Top-down picture of the live map: placed robots' clouds and keyframe tracks."""
+
+    def build() -> bytes:
+        app = request.app.state
+        return app.renderer.overview(map_document(app.db))
+
+    return Response(await run_in_threadpool(build), media_type="image/png")
+
+
+@router.get(
+    "/map/trajectories",
+    response_model=dict[str, list[list[float]]],
+    dependencies=[Depends(operator_only)],
+)
+async def map_trajectories(request: Request) -> dict:
+    """Each placed robot's keyframe poses in the reference frame: rows [stamp, tx, ty, tz,
+    qx, qy, qz, qw] (TUM order), in time order."""
+
+    def build() -> dict:
+        app = request.app.state
+        return app.renderer.trajectories(map_document(app.db))
+
+    return await run_in_threadpool(build)
+
+
+@router.get(
+    "/keyframes/{kf_id}/view", response_model=s.KeyframeView, dependencies=[Depends(operator_only)]
+)
+def keyframe_view(request: Request, kf_id: int = KF_ID) -> s.KeyframeView:
+    """A keyframe's stored RGB-D view: the images (base64) with the frame's pose and
+    intrinsics; 404 for a keyframe posted without one."""
+    db = request.app.state.db
+    rgb, depth = db.view_bytes(kf_id)
+    frame = db.load_frame(kf_id)
+    return s.KeyframeView(
+        keyframe_id=kf_id,
+        robot_id=frame.robot_id,
+        stamp=frame.stamp,
+        width=frame.width,
+        height=frame.height,
+        intrinsics=frame.intrinsics.to_dict(),
+        T_map_cam=frame.T_map_cam.tolist(),
+        rgb_type=media_type(rgb),
+        rgb=base64.b64encode(rgb).decode(),
+        depth=base64.b64encode(depth).decode(),
+    )
+
+
+@router.get(
+    "/keyframes/{kf_id}/view/{part}",
+    dependencies=[Depends(operator_only)],
+    response_class=Response,
+    responses={200: {"content": {"image/jpeg": {}, "image/png": {}}}},
+)
+def keyframe_view_image(request: Request, part: s.ViewPart, kf_id: int = KF_ID) -> Response:
+    """One image of a keyframe's stored view as posted (colour JPEG, depth 16-bit PNG)."""
+    rgb, depth = request.app.state.db.view_bytes(kf_id)
+    data = rgb if part == "rgb" else depth
+    return Response(data, media_type=media_type(data))
+
+
+@router.get("/", response_class=HTMLResponse, include_in_schema=False)
+def operator_page() -> HTMLResponse:
+    """The operator page: a shell without data; its script reads the map with the token
+    given in the address (#token=...) or typed in, sent as a bearer header."""
+    return HTMLResponse(PAGE, headers={"cache-control": "no-store"})

@@ -1,0 +1,276 @@
+"""The live fleet map: the place database aligns robots itself as overlaps appear.
+
+A merge worker (one thread; on PostgreSQL one replica at a time, under an advisory lock)
+looks at the verified overlaps of every robot pair once a second. A pair is aligned when it
+has new evidence: first overlaps, more overlaps after the gate refused it, or many more
+(`refine_factor`) since it was merged. The views sent are the stored RGB-D views near its
+verified keyframes, chosen as `fleetmap merge` chooses them (`fleetmap.pairs.spread`), so a
+live map is as accurate as a batch merge of the same keyframes. A gated result becomes a
+link (`PlaceDB.add_link`) and the fleet is placed again (`fleetmap.placement`: spanning
+tree, pose graph). Pair states and the placement are stored (`Store.live_put`), so a
+restart aligns nothing twice and serves the same map.
+
+Pair state, per "A|B" (names sorted): status merged | refused | no_views, evidence (the
+cascade overlaps it was aligned on), views, the transform (B's map into A's), inliers,
+the aligner's reason, attempts, at (unix time).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fleetmap.errors import Conflict, FleetmapError
+from fleetmap.pairs import look_at, spread
+from fleetmap.view import load_view
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LiveParams:
+    """When the merge worker aligns a robot pair."""
+
+    poll_s: float = 1.0  # how often the overlaps are looked at
+    max_views: int = 12  # per robot and pair, as `fleetmap merge --max-views`
+    retry_min_new: int = 1  # a refused pair: tried again after this many new overlaps
+    refine_factor: float = 2.0  # a merged pair: aligned again once its overlaps doubled
+    refine_min_new: int = 5  # ... and at least this many are new
+    failure_backoff_s: float = 10.0  # after the aligner could not be reached
+
+
+def pair_key(a: str, b: str) -> str:
+    return "|".join(sorted((a, b)))
+
+
+class LiveMap:
+    """The merge worker. `align(pairs)` is the aligner's `/align` (a list of (RGBDView of
+    A, RGBDView of B)) returning its JSON answer: `AlignerClient.align`."""
+
+    def __init__(self, db, align: Callable[[list], dict], params: LiveParams | None = None):
+        self.db, self.align, self.params = db, align, params or LiveParams()
+        self._poses: dict[int, np.ndarray] = {}  # keyframe id -> T_map_cam (never changes)
+        self._backoff: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.failures = 0
+
+    # --- the worker thread --------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="fleetmap-live-map", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                worked = self.tick()
+            except Exception:  # a store or aligner hiccup must not end the worker
+                self.failures += 1
+                log.exception("live map: merge worker step failed")
+                worked = False
+            if not worked:
+                self._stop.wait(self.params.poll_s)
+
+    def tick(self) -> bool:
+        """Align the most useful pair that has new evidence, then place the fleet again;
+        True if a pair was aligned."""
+        exclusive = getattr(self.db.store, "exclusive", None)
+        if exclusive is None:
+            return self._step()
+        try:
+            with exclusive("live map"):
+                return self._step()
+        except Conflict:
+            return False  # another replica is merging
+
+    def _step(self) -> bool:
+        states = load_states(self.db.store)
+        due = self.due_pairs(states)
+        if not due:
+            if self.db.store.live_get("map") is None and states:
+                self.place(states)
+            return False
+        a, b, overlaps = due[0]
+        states[pair_key(a, b)] = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
+        save_states(self.db.store, states)
+        self.place(states)
+        return True
+
+    # --- which pair -------------------------------------------------------------------
+
+    def due_pairs(self, states: dict) -> list[tuple[str, str, list]]:
+        """Pairs with new evidence, those that would place a new robot first, then by
+        verified overlaps; each with its cascade overlaps."""
+        placed = set(read_placement(self.db.store).get("transforms", {}))
+        now, due = time.monotonic(), []
+        for e in self.db.overlap_graph():
+            a, b = e["robot_a"], e["robot_b"]
+            if self._backoff.get(pair_key(a, b), 0.0) > now:
+                continue
+            overlaps = [o for o in self.db.overlaps(a, b) if o.source == "cascade"]
+            if overlaps and self._is_due(states.get(pair_key(a, b)), len(overlaps), a, b):
+                joins = (a in placed) != (b in placed) or not placed
+                due.append((not joins, -len(overlaps), a, b, overlaps))
+        return [(a, b, o) for *_, a, b, o in sorted(due, key=lambda d: d[:4])]
+
+    def _is_due(self, st: dict | None, n: int, a: str, b: str) -> bool:
+        p = self.params
+        if st is None:
+            return True
+        if st["status"] == "merged":
+            return n >= max(st["evidence"] * p.refine_factor, st["evidence"] + p.refine_min_new)
+        if st["status"] == "no_views":
+            return self._view_counts(a, b) != tuple(st["views"])
+        return n >= st["evidence"] + p.retry_min_new
+
+    def _view_counts(self, a: str, b: str) -> tuple[int, int]:
+        store = self.db.store
+        return tuple(len(store.view_ids(store.robot_code(r))) for r in (a, b))
+
+    # --- aligning one pair --------------------------------------------------------------
+
+    def attempt(self, a: str, b: str, overlaps: list, before: dict | None) -> dict:
+        """Align A and B from their stored views near the verified overlaps; the pair's new
+        state (a gated refusal of a merged pair keeps the merge)."""
+        st = {"robot_a": a, "robot_b": b, "evidence": len(overlaps), "at": time.time()}
+        st["attempts"] = (before or {}).get("attempts", 0) + 1
+        ranked = sorted(overlaps, key=lambda o: -o.inliers)
+        views = [self._views(a, [o.kf_a for o in ranked]), self._views(b, [o.kf_b for o in ranked])]
+        if not all(views):
+            missing = [r for r, v in zip((a, b), views, strict=True) if not v]
+            reason = f"no RGB-D view stored near the overlaps for {', '.join(missing)}"
+            st["views"] = list(self._view_counts(a, b))
+            return st | {"status": "no_views", "reason": reason}
+        st["views"] = [len(v) for v in views]
+        try:
+            answer = self.align([(x, y) for x in views[0] for y in views[1]])
+        except FleetmapError as exc:  # the aligner down or refusing the request
+            self._backoff[pair_key(a, b)] = time.monotonic() + self.params.failure_backoff_s
+            raise RuntimeError(f"aligner failed on {a}-{b}: {exc}") from exc
+        fit = {k: answer.get(k) for k in ("reason", "inliers", "holdout_residual_m", "method")}
+        if answer["merged"]:
+            T = np.array(answer["transform"], np.float64)
+            self.db.add_link(a, b, T)
+            log.info("live map: %s-%s merged (%d views each side)", a, b, len(views[0]))
+            return st | fit | {"status": "merged", "transform": T.tolist()}
+        log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
+        if before is not None and before["status"] == "merged":
+            return before | {"evidence": st["evidence"], "last_refusal": answer["reason"]}
+        return st | fit | {"status": "refused"}
+
+    def _views(self, robot: str, seeds: list[int]) -> list:
+        """The robot's views to align: verified keyframes first, spread as in a batch merge."""
+        store = self.db.store
+        with_view = store.view_ids(store.robot_code(robot))
+        if not with_view:
+            return []
+        have = set(with_view)
+        seed = [k for k in dict.fromkeys(seeds) if k in have]
+        if not seed:
+            return []
+        cand = list(dict.fromkeys(seed + with_view))
+        look = np.array([look_at(self._pose(k)) for k in cand])
+        chosen = sorted(cand[i] for i in spread(len(seed), look, self.params.max_views))
+        return [load_view(self.db.load_frame(k), *self.db.view_bytes(k)) for k in chosen]
+
+    def _pose(self, kf_id: int) -> np.ndarray:
+        if kf_id not in self._poses:
+            self._poses[kf_id] = self.db.load_frame(kf_id).T_map_cam
+        return self._poses[kf_id]
+
+    # --- placing the fleet ---------------------------------------------------------------
+
+    def place(self, states: dict) -> dict:
+        """Place every robot reachable from the reference through merged pairs; store the
+        placement, its version raised only when it changed."""
+        from fleetmap.placement import optimise_poses, spanning_placement
+
+        names = robot_order(self.db)
+        edges = merged_edges(states, set(names))
+        ref = reference(names, edges)
+        old = read_placement(self.db.store)
+        if ref is None:
+            placed, optimised = {}, False
+        else:
+            order = [ref] + [n for n in names if n != ref]
+            placed, chain = spanning_placement(order, edges)
+            placed, optimised = optimise_poses(placed, edges, ref, chain)
+        new = {"reference": ref, "transforms": {r: T.tolist() for r, T in placed.items()}}
+        if not _same_placement(old, new):
+            new |= {
+                "version": old.get("version", 0) + 1,
+                "updated_at": time.time(),
+                "optimised": optimised,
+                "edges": [[a, b, e["inliers"]] for (a, b), e in edges.items()],
+            }
+            self.db.store.live_put("map", json.dumps(new))
+            log.info("live map version %d: %d robots placed", new["version"], len(placed))
+            return new
+        return old
+
+
+def robot_order(db) -> list[str]:
+    """Robot names in order of arrival (their store codes)."""
+    names = [r["robot_id"] for r in db.robots()]
+    codes = {n: db.store.robot_code(n) for n in names}
+    return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])
+
+
+def merged_edges(states: dict, names: set[str]) -> dict:
+    """(A, B) -> {"T_a_b", "inliers"} of every merged pair whose robots still exist."""
+    edges = {}
+    for st in states.values():
+        if st["status"] != "merged":
+            continue
+        a, b = st["robot_a"], st["robot_b"]
+        if a in names and b in names:
+            edges[(a, b)] = {"T_a_b": np.array(st["transform"]), "inliers": st["inliers"]}
+    return edges
+
+
+def reference(names: list[str], edges: dict) -> str | None:
+    """The first robot to arrive of the largest merged group (the first robot if none)."""
+    if not names:
+        return None
+    group = {n: {n} for n in names}
+    for a, b in edges:
+        joined = group[a] | group[b]
+        for n in joined:
+            group[n] = joined
+    return min(names, key=lambda n: (-len(group[n]), names.index(n)))
+
+
+def _same_placement(old: dict, new: dict) -> bool:
+    if old.get("reference") != new["reference"] or set(old.get("transforms", {})) != set(
+        new["transforms"]
+    ):
+        return False
+    return all(
+        np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
+    )
+
+
+def load_states(store) -> dict:
+    raw = store.live_get("pairs")
+    return {} if raw is None else json.loads(raw)
+
+
+def save_states(store, states: dict) -> None:
+    store.live_put("pairs", json.dumps(states))
+
+
+def read_placement(store) -> dict:
+    raw = store.live_get("map")
+    return {} if raw is None else json.loads(raw)

@@ -1,0 +1,170 @@
+"""The live fleet map (CONTRACT section 6): robots streamed by `fleetmap stream` into a real
+`fleetmap serve place-db --aligner URL`, merged by its worker as overlaps appear; `GET /map`
+against the simulated fleet's true transforms; a restart mid-stream; `fleetmap map`."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from fleetmap.geometry import transform_error
+from fleetmap.services.cli import main
+from tests.conftest import write_robot
+from tests.servers import Service
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    """A simulated 3-robot fleet (every pair overlaps) and its true transforms."""
+    sim = tmp_path_factory.mktemp("fleet")
+    assert main(["simulate", str(sim), "--robots", "3", "--frames", "16"]) == 0
+    return sim, json.loads((sim / "T_true.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def aligner():
+    svc = Service("aligner").start()
+    yield svc.url
+    svc.stop()
+
+
+def wall_robot(folder):
+    """A robot that saw only a blank wall: it shares no place with anyone."""
+    folder.mkdir(parents=True, exist_ok=True)
+    img, depth = folder / "wall.png", folder / "wall_depth.png"
+    cv2.imwrite(str(img), np.full((480, 640, 3), 128, np.uint8))
+    cv2.imwrite(str(depth), np.full((480, 640), 5000, np.uint16))
+    return write_robot(folder / "wall", [(300.0, img, depth, np.eye(4))])
+
+
+def wait_map(
+    url: str, placed: int, merged_pairs: int = 0, timeout: float = 240.0, headers=None
+) -> dict:
+    """The map once `placed` robots are placed and `merged_pairs` pairs merged."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        m = httpx.get(url + "/map", headers=headers, timeout=30).json()
+        merged = sum(p["status"] == "merged" for p in m["pairs"])
+        if len(m["transforms"]) >= placed and merged >= merged_pairs:
+            return m
+        time.sleep(0.5)
+    raise AssertionError(f"{placed} robots not placed within {timeout} s: {m}")
+
+
+def settled(url: str, quiet_s: float = 4.0, timeout: float = 120.0) -> dict:
+    """The map once no pair has been aligned for `quiet_s` seconds."""
+    end, last, since = time.monotonic() + timeout, None, time.monotonic()
+    while time.monotonic() < end:
+        m = httpx.get(url + "/map", timeout=30).json()
+        key = [p["attempts"] for p in m["pairs"]]
+        if key != last:
+            last, since = key, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return m
+        time.sleep(0.5)
+    raise AssertionError(f"the merge worker kept aligning for {timeout} s")
+
+
+def check_truth(m: dict, truth: dict) -> None:
+    ref = m["reference"]
+    for robot, T in m["transforms"].items():
+        # T_true maps each robot's frame into robot0's: into the reference's through it
+        T_true = np.linalg.inv(np.array(truth[ref])) @ np.array(truth[robot])
+        dt, dr = transform_error(np.array(T), T_true)
+        assert dt < 0.05 and dr < 2.0, (robot, dt, dr)
+
+
+def test_streamed_fleet_is_merged_live_and_written_by_map(fleet, aligner, tmp_path, capsys):
+    sim, truth = fleet
+    db = Service("place-db", tmp_path / "db", args=["--aligner", aligner]).start()
+    try:
+        robots = [str(sim / r) for r in truth] + [str(wall_robot(tmp_path / "w"))]
+        assert main(["stream", *robots, "--place-db", db.url, "--speed", "0"]) == 0
+        assert "robot0: 16 keyframes streamed" in capsys.readouterr().out
+        m = wait_map(db.url, 3, merged_pairs=3)  # every pair overlaps: a pose-graph cycle
+        assert m["reference"] == "robot0" and m["robots"][:3] == ["robot0", "robot1", "robot2"]
+        check_truth(m, truth)
+        assert m["unmerged"] == [
+            {"robot": "wall", "reason": "no verified overlap with another robot yet"}
+        ]
+        m = settled(db.url)  # refinements as overlaps doubled, then nothing new:
+        time.sleep(3)  # no pair aligned again, the version unchanged
+        again = httpx.get(db.url + "/map").json()
+        assert again["version"] == m["version"]
+        assert [p["attempts"] for p in again["pairs"]] == [p["attempts"] for p in m["pairs"]]
+        check_truth(again, truth)
+        kf = httpx.get(db.url + "/robots/robot1/keyframes").json()["keyframes"][0]["id"]
+        view = httpx.get(db.url + f"/keyframes/{kf}/view").json()
+        assert view["robot_id"] == "robot1" and view["rgb_type"] == "image/jpeg"
+        depth = httpx.get(db.url + f"/keyframes/{kf}/view/depth").content
+        assert cv2.imdecode(np.frombuffer(depth, np.uint8), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+
+        out = tmp_path / "map"
+        assert main(["map", "--place-db", db.url, "-o", str(out)]) == 0
+        report = json.loads((out / "report.json").read_text())
+        assert report["transforms"] == m["transforms"] and report["unmerged"] == ["wall"]
+        assert (out / "overview.png").stat().st_size > 10_000
+        assert (out / "overlap_matrix.png").stat().st_size > 5_000
+        ply = (out / "merged.ply").read_bytes()
+        assert (
+            b"property ushort robot" in ply[:400]
+            and int(ply.split(b"element vertex ")[1].split()[0]) > 1000
+        )
+        g2o = (out / "pose_graph.g2o").read_text()
+        assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
+        traj = (out / "trajectories" / "robot2.txt").read_text().splitlines()
+        assert len(traj) == 1 + 16
+    finally:
+        db.stop()
+
+
+def test_restart_mid_stream_loses_nothing_and_resumes_the_map(fleet, aligner, tmp_path, capsys):
+    sim, truth = fleet
+    data = tmp_path / "db"
+    db = Service("place-db", data, args=["--aligner", aligner]).start()
+    try:
+        assert (
+            main(
+                [
+                    "stream",
+                    str(sim / "robot0"),
+                    str(sim / "robot1"),
+                    "--place-db",
+                    db.url,
+                    "--speed",
+                    "0",
+                ]
+            )
+            == 0
+        )
+        before = wait_map(db.url, 2)
+        db.kill()  # no chance to flush anything
+        db = Service(
+            "place-db",
+            data,
+            args=["--aligner", aligner],
+        ).start()
+        m = httpx.get(db.url + "/map").json()
+        assert m["version"] == before["version"] and m["transforms"] == before["transforms"]
+        # the rest of the stream (the robots' earlier keyframes again: idempotent)
+        robots = [str(sim / r) for r in truth]
+        assert main(["stream", *robots, "--place-db", db.url, "--speed", "0"]) == 0
+        m = wait_map(db.url, 3)
+        check_truth(m, truth)
+        pair01 = next(p for p in m["pairs"] if (p["robot_a"], p["robot_b"]) == ("robot0", "robot1"))
+        first01 = next(
+            p for p in before["pairs"] if (p["robot_a"], p["robot_b"]) == ("robot0", "robot1")
+        )
+        assert pair01["attempts"] == first01["attempts"]  # no new evidence: not aligned again
+        robots_after = {
+            r["robot_id"]: r["keyframes"] for r in httpx.get(db.url + "/robots").json()["robots"]
+        }
+        assert robots_after == {"robot0": 16, "robot1": 16, "robot2": 16}
+    finally:
+        db.stop()
+    capsys.readouterr()
