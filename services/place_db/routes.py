@@ -110,6 +110,11 @@ async def ingest(robot_id: str, request: Request, response: Response) -> s.Keyfr
     view = None
     if body and request.headers.get("content-type", "").lower().startswith("multipart/"):
         body, view = await _keyframe_parts(request)
+        size = sum(map(len, (view or {}).values()))
+        if size > st.max_view_bytes:
+            raise PayloadTooLarge(
+                f"View of {size} bytes exceeds the {st.max_view_bytes}-byte limit"
+            )
     if len(body) > st.max_body_bytes:
         raise PayloadTooLarge(f"Frame of {len(body)} bytes exceeds {st.max_body_bytes}")
     kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body, view)
@@ -121,7 +126,8 @@ async def ingest(robot_id: str, request: Request, response: Response) -> s.Keyfr
 
 async def _keyframe_parts(request: Request) -> tuple[bytes, dict[str, bytes] | None]:
     """The frame and the view's images of a multipart keyframe."""
-    form = await request.form(max_files=len(VIEW_FIELDS), max_fields=len(VIEW_FIELDS))
+    # one more than we take, so a misnamed field gets its own message
+    form = await request.form(max_files=len(VIEW_FIELDS) + 1, max_fields=len(VIEW_FIELDS) + 1)
     try:
         unknown = sorted(set(form.keys()) - set(VIEW_FIELDS))
         if unknown:

@@ -60,6 +60,7 @@ class LiveMap:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.failures = 0
+        self._robots_placed = -1  # robots known at the last placement
 
     # --- the worker thread --------------------------------------------------------------
 
@@ -99,8 +100,10 @@ class LiveMap:
         states = load_states(self.db.store)
         due = self.due_pairs(states)
         if not due:
-            if self.db.store.live_get("map") is None and states:
+            robots = self.db.store.robot_count()
+            if robots != self._robots_placed:  # a new robot: the reference may change
                 self.place(states)
+                self._robots_placed = robots
             return False
         a, b, overlaps = due[0]
         states[pair_key(a, b)] = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))

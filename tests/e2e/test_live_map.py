@@ -5,6 +5,9 @@ against the simulated fleet's true transforms; a restart mid-stream; `fleetmap m
 from __future__ import annotations
 
 import json
+import shutil
+import subprocess
+import tempfile
 import time
 
 import cv2
@@ -60,7 +63,7 @@ def settled(url: str, quiet_s: float = 4.0, timeout: float = 120.0) -> dict:
     """The map once no pair has been aligned for `quiet_s` seconds."""
     end, last, since = time.monotonic() + timeout, None, time.monotonic()
     while time.monotonic() < end:
-        m = httpx.get(url + "/map", timeout=30).json()
+        m = httpx.get(url + "/map", headers=AUTH, timeout=30).json()
         key = [p["attempts"] for p in m["pairs"]]
         if key != last:
             last, since = key, time.monotonic()
@@ -79,48 +82,106 @@ def check_truth(m: dict, truth: dict) -> None:
         assert dt < 0.05 and dr < 2.0, (robot, dt, dr)
 
 
-def test_streamed_fleet_is_merged_live_and_written_by_map(fleet, aligner, tmp_path, capsys):
-    sim, truth = fleet
-    db = Service("place-db", tmp_path / "db", args=["--aligner", aligner]).start()
-    try:
-        robots = [str(sim / r) for r in truth] + [str(wall_robot(tmp_path / "w"))]
-        assert main(["stream", *robots, "--place-db", db.url, "--speed", "0"]) == 0
-        assert "robot0: 16 keyframes streamed" in capsys.readouterr().out
-        m = wait_map(db.url, 3, merged_pairs=3)  # every pair overlaps: a pose-graph cycle
-        assert m["reference"] == "robot0" and m["robots"][:3] == ["robot0", "robot1", "robot2"]
-        check_truth(m, truth)
-        assert m["unmerged"] == [
-            {"robot": "wall", "reason": "no verified overlap with another robot yet"}
-        ]
-        m = settled(db.url)  # refinements as overlaps doubled, then nothing new:
-        time.sleep(3)  # no pair aligned again, the version unchanged
-        again = httpx.get(db.url + "/map").json()
-        assert again["version"] == m["version"]
-        assert [p["attempts"] for p in again["pairs"]] == [p["attempts"] for p in m["pairs"]]
-        check_truth(again, truth)
-        kf = httpx.get(db.url + "/robots/robot1/keyframes").json()["keyframes"][0]["id"]
-        view = httpx.get(db.url + f"/keyframes/{kf}/view").json()
-        assert view["robot_id"] == "robot1" and view["rgb_type"] == "image/jpeg"
-        depth = httpx.get(db.url + f"/keyframes/{kf}/view/depth").content
-        assert cv2.imdecode(np.frombuffer(depth, np.uint8), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+TOKEN = "operator-secret-7"
+AUTH = {"authorization": f"Bearer {TOKEN}"}
 
-        out = tmp_path / "map"
-        assert main(["map", "--place-db", db.url, "-o", str(out)]) == 0
-        report = json.loads((out / "report.json").read_text())
-        assert report["transforms"] == m["transforms"] and report["unmerged"] == ["wall"]
-        assert (out / "overview.png").stat().st_size > 10_000
-        assert (out / "overlap_matrix.png").stat().st_size > 5_000
-        ply = (out / "merged.ply").read_bytes()
-        assert (
-            b"property ushort robot" in ply[:400]
-            and int(ply.split(b"element vertex ")[1].split()[0]) > 1000
-        )
-        g2o = (out / "pose_graph.g2o").read_text()
-        assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
-        traj = (out / "trajectories" / "robot2.txt").read_text().splitlines()
-        assert len(traj) == 1 + 16
+
+@pytest.fixture(scope="module")
+def live(fleet, aligner, tmp_path_factory):
+    """A token-protected place database with a merge worker, the fleet and a wall robot
+    streamed into it, once every pair is merged and the worker has settled."""
+    sim, truth = fleet
+    tmp = tmp_path_factory.mktemp("live")
+    env = {"FLEETMAP_PLACE_DB_OPERATOR_TOKEN": TOKEN, "FLEETMAP_TOKEN": TOKEN}
+    db = Service("place-db", tmp / "db", env=env, args=["--aligner", aligner]).start()
+    try:
+        robots = [str(sim / r) for r in truth] + [str(wall_robot(tmp / "w"))]
+        args = ["--token", TOKEN, "stream", *robots, "--place-db", db.url, "--speed", "0"]
+        assert main(args) == 0
+        m = wait_map(db.url, 3, merged_pairs=3, headers=AUTH)  # every pair overlaps: a cycle
+        yield db, m
     finally:
         db.stop()
+
+
+def test_streamed_fleet_is_merged_live_and_written_by_map(live, fleet, tmp_path, capsys):
+    db, m = live
+    _, truth = fleet
+    assert m["reference"] == "robot0" and m["robots"] == ["robot0", "robot1", "robot2", "wall"]
+    check_truth(m, truth)
+    assert m["unmerged"] == [
+        {"robot": "wall", "reason": "no verified overlap with another robot yet"}
+    ]
+    m = settled(db.url)  # refinements as overlaps doubled, then nothing new:
+    time.sleep(3)  # no pair aligned again, the version unchanged
+    again = httpx.get(db.url + "/map", headers=AUTH).json()
+    assert again["version"] == m["version"]
+    assert [p["attempts"] for p in again["pairs"]] == [p["attempts"] for p in m["pairs"]]
+    check_truth(again, truth)
+    assert httpx.get(db.url + "/map").status_code == 401  # token-protected
+    kfs = httpx.get(db.url + "/robots/robot1/keyframes", headers=AUTH).json()["keyframes"]
+    assert len(kfs) == 16
+    view = httpx.get(db.url + f"/keyframes/{kfs[0]['id']}/view", headers=AUTH).json()
+    assert view["robot_id"] == "robot1" and view["rgb_type"] == "image/jpeg"
+    depth = httpx.get(db.url + f"/keyframes/{kfs[0]['id']}/view/depth", headers=AUTH).content
+    assert cv2.imdecode(np.frombuffer(depth, np.uint8), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+
+    out = tmp_path / "map"
+    assert main(["--token", TOKEN, "map", "--place-db", db.url, "-o", str(out)]) == 0
+    assert "unmerged wall: no verified overlap" in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["transforms"] == again["transforms"] and report["unmerged"] == ["wall"]
+    assert (out / "overview.png").stat().st_size > 10_000
+    assert (out / "overlap_matrix.png").stat().st_size > 5_000
+    ply = (out / "merged.ply").read_bytes()
+    assert b"property ushort robot" in ply[:400]
+    assert int(ply.split(b"element vertex ")[1].split()[0]) > 1000
+    g2o = (out / "pose_graph.g2o").read_text()
+    assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
+    assert len((out / "trajectories" / "robot2.txt").read_text().splitlines()) == 1 + 16
+
+
+def chromium_dom(url: str, budget_ms: int = 8000) -> str:
+    """The page's DOM after its scripts ran, in Debian's headless chromium."""
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.fail("chromium is not installed: scripts/install.sh installs Debian's chromium")
+    with tempfile.TemporaryDirectory() as profile:
+        proc = subprocess.run(
+            [
+                exe,
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                f"--user-data-dir={profile}",
+                f"--virtual-time-budget={budget_ms}",
+                "--dump-dom",
+                url,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def test_operator_page_in_a_real_browser(live):
+    db, _ = live
+    m = httpx.get(db.url + "/map", headers=AUTH).json()
+    dom = chromium_dom(f"{db.url}/#token={TOKEN}")
+    assert f'data-version="{m["version"]}"' in dom  # the script ran and read the map
+    assert f"map version {m['version']}: 3 of 4 robots placed, reference robot0" in dom
+    for r in ("robot1", "robot2"):
+        row = '<td class="n">16</td><td class="n">16</td><td class="merged">merged</td>'
+        assert f'<tr data-robot="{r}"><td>{r}</td>{row}</tr>' in dom
+    assert '<li data-robot="wall">wall: no verified overlap with another robot yet</li>' in dom
+    assert 'id="overview" alt="overview of the live map (top-down)" src="blob:' in dom
+    assert 'id="error"></div>' in dom  # no error shown
+    # without the token: the login form, no robot data
+    dom = chromium_dom(db.url + "/")
+    assert "token refused" in dom and 'id="login" style="display: block;"' in dom
+    assert "robot1" not in dom
 
 
 def test_restart_mid_stream_loses_nothing_and_resumes_the_map(fleet, aligner, tmp_path, capsys):
@@ -142,7 +203,8 @@ def test_restart_mid_stream_loses_nothing_and_resumes_the_map(fleet, aligner, tm
             )
             == 0
         )
-        before = wait_map(db.url, 2)
+        wait_map(db.url, 2)
+        before = settled(db.url)  # aligned on every overlap found
         db.kill()  # no chance to flush anything
         db = Service(
             "place-db",
