@@ -2,8 +2,9 @@
 # Install fleetmap and its dependencies into ./.venv (Debian, Python 3.11).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-# postgresql-15: the PostgreSQL backend and its tests (a throwaway cluster per test run)
-APT_PACKAGES="libusb-1.0-0 libgl1 libgomp1 postgresql-15"
+# postgresql-15: the PostgreSQL backend and its tests (a throwaway cluster per test run);
+# chromium: the operator page's test in a real headless browser
+APT_PACKAGES="libusb-1.0-0 libgl1 libgomp1 postgresql-15 chromium"
 missing=$(for p in $APT_PACKAGES; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done)
 if [ -n "$missing" ]; then
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"

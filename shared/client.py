@@ -196,7 +196,9 @@ def _png(img) -> bytes:
 def align_request(pairs, **options) -> dict:
     """The multipart parts of a `POST /align` (see services/aligner/schemas.py): keyword
     arguments `data` (the JSON `meta` field) and `files` (PNG colour and depth per view).
-    The indexed layout: a view object in several pairs is sent once.
+    The indexed layout: a view object in several pairs is sent once. A view with an
+    `encoded` dict ({"rgb", "depth"} image bytes, `fleetmap.view.StoredView`) is sent as
+    stored, not decoded and encoded again.
     options: method, cloud, colour."""
     import json
 
@@ -216,9 +218,10 @@ def align_request(pairs, **options) -> dict:
                         "intrinsics": v.intrinsics.to_dict(),
                     }
                 )
-                for kind, img in (("rgb", v.rgb), ("depth", v.depth)):
+                for kind in ("rgb", "depth"):
                     name = view_part(side, i, kind)
-                    files[name] = (f"{name}.png", _png(img), "image/png")
+                    data = v.encoded[kind] if hasattr(v, "encoded") else _png(getattr(v, kind))
+                    files[name] = (name, data, "application/octet-stream")
             ij.append(seen[id(v)])
         meta["pairs"].append(ij)
     return {"data": {ALIGN_META: json.dumps(meta)}, "files": files}

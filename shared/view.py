@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -92,14 +93,28 @@ def check_view(frame, parts: dict[str, bytes], max_pixels: int) -> tuple[bytes, 
     return bytes(parts["rgb"]), bytes(parts["depth"])
 
 
-def load_view(frame, rgb: bytes, depth: bytes):
-    """The stored view of a keyframe as the aligner's `RGBDView`."""
-    from fleetmap.correspondences import RGBDView
+@dataclass
+class StoredView:
+    """A stored view as the aligner client sends it: the images as posted (`encoded`), the
+    frame's pose and intrinsics; nothing decoded."""
 
-    return RGBDView(
-        decode_image(rgb, "rgb", False),
-        decode_image(depth, "depth", True),
-        frame.intrinsics,
-        frame.T_map_cam,
-        frame.stamp,
-    )
+    encoded: dict[str, bytes]
+    intrinsics: object
+    T_map_cam: np.ndarray
+    stamp: float
+
+    def decoded(self):
+        """The view as the aligner's `RGBDView` (images decoded)."""
+        from fleetmap.correspondences import RGBDView
+
+        return RGBDView(
+            decode_image(self.encoded["rgb"], "rgb", False),
+            decode_image(self.encoded["depth"], "depth", True),
+            self.intrinsics,
+            self.T_map_cam,
+            self.stamp,
+        )
+
+
+def stored_view(frame, rgb: bytes, depth: bytes) -> StoredView:
+    return StoredView({"rgb": rgb, "depth": depth}, frame.intrinsics, frame.T_map_cam, frame.stamp)

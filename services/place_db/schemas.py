@@ -185,3 +185,8 @@ class LiveMap(BaseModel):
     fleet: list[RobotState]
     pairs: list[dict] = Field(description="the merge worker's state of each robot pair")
     overlaps: list[OverlapEdge]
+    worker: dict | None = Field(
+        None,
+        description="the merge worker: `aligning` (the robot pairs being aligned), `due` "
+        "(pairs waiting for a free slot), `since` (unix time of the change)",
+    )

@@ -17,18 +17,20 @@ the aligner's reason, attempts, at (unix time).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
 import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.pairs import look_at, spread
-from fleetmap.view import load_view
+from fleetmap.view import stored_view
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +45,7 @@ class LiveParams:
     refine_factor: float = 2.0  # a merged pair: aligned again once its overlaps doubled
     refine_min_new: int = 5  # ... and at least this many are new
     failure_backoff_s: float = 10.0  # after the aligner could not be reached
+    parallel: int = 2  # pairs aligned at once (the aligner serves two requests at a time)
 
 
 def pair_key(a: str, b: str) -> str:
@@ -61,6 +64,7 @@ class LiveMap:
         self._thread: threading.Thread | None = None
         self.failures = 0
         self._robots_placed = -1  # robots known at the last placement
+        self._noted: dict | None = None
 
     # --- the worker thread --------------------------------------------------------------
 
@@ -74,36 +78,87 @@ class LiveMap:
             self._thread.join(timeout)
 
     def _run(self) -> None:
+        """Lead the merging while this process holds the store's "live map" lock (always
+        on SQLite; one replica at a time on PostgreSQL)."""
+        exclusive = getattr(self.db.store, "exclusive", None)
         while not self._stop.is_set():
             try:
-                worked = self.tick()
+                with exclusive("live map") if exclusive else contextlib.nullcontext():
+                    self._lead()
+            except Conflict:
+                pass  # another replica is merging
             except Exception:  # a store or aligner hiccup must not end the worker
                 self.failures += 1
-                log.exception("live map: merge worker step failed")
-                worked = False
-            if not worked:
-                self._stop.wait(self.params.poll_s)
+                log.exception("live map: merge worker failed; starting again")
+            self._stop.wait(self.params.poll_s)
+
+    def _lead(self) -> None:
+        """Keep up to `parallel` pairs aligning at once (the aligner takes two requests
+        at a time, one per core); store each result and place the fleet as it comes."""
+        flying: dict[str, Future] = {}
+        with ThreadPoolExecutor(self.params.parallel, thread_name_prefix="live-align") as pool:
+            while not self._stop.is_set():
+                for key in [k for k, f in flying.items() if f.done()]:
+                    self._finish(key, flying.pop(key))
+                states = load_states(self.db.store)
+                due = [d for d in self.due_pairs(states) if pair_key(d[0], d[1]) not in flying]
+                for a, b, overlaps in self._next(due, flying):
+                    before = states.get(pair_key(a, b))
+                    flying[pair_key(a, b)] = pool.submit(self.attempt, a, b, overlaps, before)
+                self._note(flying, len(due))
+                if not flying:
+                    self._place_new_robots(states)
+                wait(list(flying.values()) or [Future()], self.params.poll_s, FIRST_COMPLETED)
+
+    def _next(self, due: list, flying: dict) -> list:
+        """Due pairs for the free slots, in order. While a pair that places a new robot is
+        aligning, a second pair for the same robot, or a refinement, waits: on two cores it
+        would slow the one that grows the map."""
+        placed = set(read_placement(self.db.store).get("transforms", {}))
+        busy = {r for k in flying for r in k.split("|") if r not in placed}
+        out = []
+        for a, b, overlaps in due:
+            if len(flying) + len(out) >= self.params.parallel:
+                break
+            joins = {r for r in (a, b) if r not in placed}
+            if joins & busy or (busy and not joins):  # refinements wait for new robots too
+                continue
+            out.append((a, b, overlaps))
+            busy |= joins
+        return out
+
+    def _finish(self, key: str, future: Future) -> None:
+        try:
+            result = future.result()
+        except Exception as exc:  # the aligner failed: tried again after the backoff
+            self.failures += 1
+            log.warning("live map: %s", exc)
+            return
+        states = load_states(self.db.store)
+        states[key] = result
+        save_states(self.db.store, states)
+        self.place(states)
+
+    def _note(self, flying: dict, due: int) -> None:
+        """The worker row `GET /map` shows: the pairs aligning and how many wait."""
+        work = {"aligning": [k.split("|") for k in flying], "due": max(0, due - len(flying))}
+        if work != self._noted:
+            self.db.store.live_put("worker", json.dumps(work | {"since": time.time()}))
+            self._noted = work
+
+    def _place_new_robots(self, states: dict) -> None:
+        robots = self.db.store.robot_count()
+        if robots != self._robots_placed:  # a new robot: the reference may change
+            self.place(states)
+            self._robots_placed = robots
 
     def tick(self) -> bool:
-        """Align the most useful pair that has new evidence, then place the fleet again;
-        True if a pair was aligned."""
-        exclusive = getattr(self.db.store, "exclusive", None)
-        if exclusive is None:
-            return self._step()
-        try:
-            with exclusive("live map"):
-                return self._step()
-        except Conflict:
-            return False  # another replica is merging
-
-    def _step(self) -> bool:
+        """One step in the caller's thread: align the most useful pair with new evidence
+        and place the fleet again; True if a pair was aligned."""
         states = load_states(self.db.store)
         due = self.due_pairs(states)
         if not due:
-            robots = self.db.store.robot_count()
-            if robots != self._robots_placed:  # a new robot: the reference may change
-                self.place(states)
-                self._robots_placed = robots
+            self._place_new_robots(states)
             return False
         a, b, overlaps = due[0]
         states[pair_key(a, b)] = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
@@ -162,7 +217,8 @@ class LiveMap:
         except FleetmapError as exc:  # the aligner down or refusing the request
             self._backoff[pair_key(a, b)] = time.monotonic() + self.params.failure_backoff_s
             raise RuntimeError(f"aligner failed on {a}-{b}: {exc}") from exc
-        fit = {k: answer.get(k) for k in ("reason", "inliers", "holdout_residual_m", "method")}
+        keys = ("reason", "inliers", "holdout_residual_m", "method", "seconds")
+        fit = {k: answer.get(k) for k in keys}
         if answer["merged"]:
             T = np.array(answer["transform"], np.float64)
             self.db.add_link(a, b, T)
@@ -186,7 +242,7 @@ class LiveMap:
         cand = list(dict.fromkeys(seed + with_view))
         look = np.array([look_at(self._pose(k)) for k in cand])
         chosen = sorted(cand[i] for i in spread(len(seed), look, self.params.max_views))
-        return [load_view(self.db.load_frame(k), *self.db.view_bytes(k)) for k in chosen]
+        return [stored_view(self.db.load_frame(k), *self.db.view_bytes(k)) for k in chosen]
 
     def _pose(self, kf_id: int) -> np.ndarray:
         if kf_id not in self._poses:

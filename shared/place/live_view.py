@@ -6,6 +6,7 @@ pose and its share of the cloud)."""
 from __future__ import annotations
 
 import io
+import json
 import threading
 from collections import OrderedDict
 
@@ -48,7 +49,15 @@ def map_document(db) -> dict:
         "fleet": fleet,
         "pairs": sorted(states.values(), key=lambda s: (s["robot_a"], s["robot_b"])),
         "overlaps": graph,
+        "worker": _worker(db.store),
     }
+
+
+def _worker(store) -> dict | None:
+    """The merge worker's last word: the pairs it is aligning and how many more wait; None
+    before it first ran (or without a worker)."""
+    raw = store.live_get("worker")
+    return None if raw is None else json.loads(raw)
 
 
 def unmerged_reason(robot: dict, states: dict, graph: list[dict], placed: dict) -> str:
@@ -98,7 +107,7 @@ class MapRenderer:
         """One robot's map cloud from its stored views (its own frame), voxelised at
         BASE_VOXEL_M; new keyframes are added to the cached cloud."""
         from fleetmap.mapcloud import MapCloud, view_points
-        from fleetmap.view import load_view
+        from fleetmap.view import stored_view
 
         store = self.db.store
         ids = store.view_ids(store.robot_code(robot) or -1)
@@ -108,7 +117,7 @@ class MapRenderer:
         if new:
             parts = [(pts, cols)]
             for k in new:
-                v = load_view(self.db.load_frame(k), *self.db.view_bytes(k))
+                v = stored_view(self.db.load_frame(k), *self.db.view_bytes(k)).decoded()
                 parts.append(
                     view_points(
                         v.rgb, v.depth, v.intrinsics, v.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M

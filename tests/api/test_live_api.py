@@ -115,6 +115,8 @@ def test_the_merge_worker_places_the_pair_and_every_replica_serves_it(settings, 
 
         def align(pairs):
             calls.append(len(pairs))
+            views = {id(v): v.decoded() for pair in pairs for v in pair}  # each view once
+            pairs = [(views[id(x)], views[id(y)]) for x, y in pairs]
             return align_request(pairs, "default", DEFAULT_ALIGN)[0]
 
         live = LiveMap(app.state.db, align)

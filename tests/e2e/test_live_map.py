@@ -65,7 +65,8 @@ def settled(url: str, quiet_s: float = 4.0, timeout: float = 120.0) -> dict:
     while time.monotonic() < end:
         m = httpx.get(url + "/map", headers=AUTH, timeout=30).json()
         key = [p["attempts"] for p in m["pairs"]]
-        if key != last:
+        busy = m["worker"] is not None and (m["worker"]["aligning"] or m["worker"]["due"])
+        if key != last or busy:
             last, since = key, time.monotonic()
         elif time.monotonic() - since >= quiet_s:
             return m
