@@ -73,6 +73,17 @@ exit status: 0 done, 1 an error while running (bad data, unreachable service), 2
 mistake, 130 interrupted."""
 
 
+def _speed(text: str) -> float:
+    """--speed: a finite number >= 0 (argparse turns the ValueError into a usage error)."""
+    x = float(text)
+    if not (x >= 0 and x != float("inf")):
+        raise ValueError(text)
+    return x
+
+
+_speed.__name__ = "speed (0 or more)"
+
+
 def _url_arg(p: argparse.ArgumentParser, flag: str, env: str, required: bool, what: str) -> None:
     default = os.environ.get(env) or None
     p.add_argument(
@@ -231,7 +242,7 @@ def _live_commands(sub) -> None:
     _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
     p.add_argument(
         "--speed",
-        type=float,
+        type=_speed,
         default=1.0,
         metavar="X",
         help="times recording speed (default 1; 0: as fast as possible)",

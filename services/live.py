@@ -96,8 +96,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from fleetmap.services.commands import _policy, _read_robots
     from fleetmap.services.merge import checked_vocabulary
 
-    if args.speed < 0:
-        raise BadInput(f"--speed must be 0 (as fast as possible) or positive, got {args.speed}")
     recs = _read_robots(args, args.robots)
     ids = [r.robot_id for r in recs]
     if len(set(ids)) != len(ids):

@@ -49,6 +49,11 @@ def test_version_and_help():
             1,
             "Cannot reach http://127.0.0.1:9/healthz",
         ),
+        (["stream", str(EXAMPLE / "alpha"), "--place-db", "http://x", "--speed", "-1"], 2, "speed"),
+        (["stream", "nowhere", "--place-db", "http://127.0.0.1:9"], 1, "Robot folder not found"),
+        (["stream", str(EXAMPLE / "alpha"), "--place-db", "http://127.0.0.1:9"], 1, "127.0.0.1:9"),
+        (["map", "--place-db", "http://127.0.0.1:9", "-o", "/etc/hostname"], 1, "not a folder"),
+        (["map", "--place-db", "http://127.0.0.1:9", "-o", "x"], 1, "127.0.0.1:9"),
     ],
 )
 def test_mistakes_end_in_one_line_and_the_right_exit_code(args, code, message):
