@@ -17,9 +17,10 @@ ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PATH=/opt/venv/bin:$PATH
 RUN python3 -m venv /opt/venv
 # CPU-only torch first, so no CUDA build is pulled in.
 RUN pip install --no-cache-dir torch==2.13.0 --index-url ${TORCH_INDEX}
-# The dependencies alone (read from pyproject.toml), so a code change does not reinstall them.
+# The dependencies alone (read from pyproject.toml: the robot-side base and the server extra),
+# so a code change does not reinstall them.
 COPY pyproject.toml /tmp/pyproject.toml
-RUN python -c "import tomllib; print(*tomllib.load(open('/tmp/pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
+RUN python -c "import tomllib; p = tomllib.load(open('/tmp/pyproject.toml', 'rb'))['project']; print(*p['dependencies'], *p['optional-dependencies']['server'], sep='\n')" \
         | sed "s/^open3d\b/${OPEN3D}/" > /tmp/requirements.txt \
     && pip install --no-cache-dir -r /tmp/requirements.txt
 # The project itself (.dockerignore keeps tests, docs and the venv out of the context).
