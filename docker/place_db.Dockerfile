@@ -2,29 +2,29 @@
 # The base image and the torch wheel source are build arguments: ordinary users take these
 # defaults; an offline machine points them at a local base image and wheel index
 # (scripts/compose.sh does, see docs/OPERATIONS.md "Docker compose").
-#   BASE_IMAGE   Debian bookworm with Python 3.11 (`python3 -m venv` must work)
-#   TORCH_INDEX  a PEP 503 index with the CPU build of torch 2.13.0 and its dependencies
-#   OPEN3D       the Open3D distribution: open3d-cpu (same `open3d` module, 0.7 GB smaller
-#                than the CUDA build the services never use) or open3d
+#   BASE_IMAGE   Debian bookworm with Python 3.11 (`python3 -m venv` must work); a tag, not
+#                a digest: pin one with BASE_IMAGE=python:3.11-slim-bookworm@sha256:...
+#   TORCH_INDEX  a PEP 503 index with the CPU build of torch 2.13.0
+# Every Python package comes from docker/requirements.lock (scripts/lock.sh), pinned with its
+# hashes: the CPU torch and open3d-cpu (the same `open3d` module, 0.6 GB smaller than the
+# CUDA build the services never use), the rest from PyPI.
 # Two stages: everything is installed into /opt/venv, the runtime stage copies only that venv,
 # so no pip cache, build tools or sources are left in the image.
 ARG BASE_IMAGE=python:3.11-slim-bookworm
 
 FROM ${BASE_IMAGE} AS build
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
-ARG OPEN3D=open3d-cpu
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PATH=/opt/venv/bin:$PATH
 RUN python3 -m venv /opt/venv
-# CPU-only torch first, so no CUDA build is pulled in.
-RUN pip install --no-cache-dir torch==2.13.0 --index-url ${TORCH_INDEX}
-# The dependencies alone (read from pyproject.toml), so a code change does not reinstall them.
-COPY pyproject.toml /tmp/pyproject.toml
-RUN python -c "import tomllib; print(*tomllib.load(open('/tmp/pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
-        | sed "s/^open3d\b/${OPEN3D}/" > /tmp/requirements.txt \
-    && pip install --no-cache-dir -r /tmp/requirements.txt
-# The project itself (.dockerignore keeps tests, docs and the venv out of the context).
+# The dependencies alone, so a code change does not reinstall them: --require-hashes refuses
+# a file whose sha256 is not the lock's and a package the lock does not pin.
+COPY docker/requirements.lock /tmp/requirements.lock
+RUN pip install --no-cache-dir --require-hashes -r /tmp/requirements.lock \
+        --extra-index-url ${TORCH_INDEX}
+# The project itself (.dockerignore keeps tests, docs and the venv out of the context), built
+# with the locked setuptools: nothing unpinned is downloaded.
 COPY . /src
-RUN pip install --no-cache-dir --no-deps /src
+RUN pip install --no-cache-dir --no-deps --no-build-isolation /src
 
 FROM ${BASE_IMAGE}
 # Open3D's shared libraries; a base image that has them already skips apt.

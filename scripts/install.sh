@@ -18,7 +18,7 @@ command -v "$PY" >/dev/null || PY=python3
 quiet() { grep -v "^WARNING: Location" || true; }
 .venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | quiet
 # (the build backend warns on every editable install of a package-dir mapping: not for users)
-PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]" 2>&1 | quiet
+PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[server,dev]" 2>&1 | quiet
 .venv/bin/python -c "import fastapi, cv2, open3d, torch, faiss, psycopg; import fleetmap.services.cli" \
   || { echo "install.sh: dependencies failed to import" >&2; exit 1; }
 echo "fleetmap installed in .venv"

@@ -9,6 +9,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from fleetmap.camera import Intrinsics
+from fleetmap.lazy import require
 
 log = logging.getLogger("fleetmap")
 
@@ -107,6 +108,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_vocab_train(args: argparse.Namespace) -> int:
     """Train the GIST codebook and SIFT words (thesis Algorithm 1)."""
+    require("fleetmap vocab train", ("faiss",))
     from fleetmap.training import collect_images, train_from_images
 
     paths = collect_images(args.inputs, stride=args.stride)
@@ -142,6 +144,7 @@ def _settings(cls, **overrides):
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Run one service in the foreground until SIGTERM/SIGINT."""
+    require("fleetmap serve")
     import uvicorn
 
     from fleetmap.services.common import header_timeout_protocol
@@ -303,6 +306,7 @@ def cmd_align(args: argparse.Namespace) -> int:
 
 def cmd_merge(args: argparse.Namespace) -> int:
     """The main job: N robot folders in, one global map and report out."""
+    require("fleetmap merge")
     from fleetmap.errors import BadInput
     from fleetmap.pictures import n_cascade
     from fleetmap.services.merge import run_merge
@@ -342,6 +346,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """A synthetic fleet recording with the true transforms beside it."""
+    require("fleetmap simulate", ("scipy",))
     from fleetmap.simulate import simulate_fleet
 
     out = Path(args.out)

@@ -76,3 +76,7 @@ class UnsupportedEncoding(BadInput):
 
 class StorageCorrupt(FleetmapError):
     """Stored data failed its integrity check: the server's fault, never the client's."""
+
+
+class MissingDependency(FleetmapError, ImportError):
+    """A library of the `server` extra that this install lacks (a robot-side install)."""

@@ -1,9 +1,13 @@
-"""Poses and rigid-transform helpers. `T_a_b` maps points from frame b into frame a."""
+"""Poses and rigid-transform helpers. `T_a_b` maps points from frame b into frame a.
+
+numpy only: reading a robot's poses is robot-side, and a robot-side install has no SciPy
+(143 MB of the 300 MB budget). The quaternion conversions are those of SciPy's `Rotation`
+(scalar last, Markley's method from a matrix), which the tests compare them with.
+"""
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fleetmap.errors import BadInput
 
@@ -44,14 +48,51 @@ def pose_from_tum(t_xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     if not np.isfinite(norm) or norm < 1e-9:
         raise BadInput(f"Expected a unit quaternion, got {q.tolist()}")
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, :3] = quat_to_matrix(q / norm)
     T[:3, 3] = t_xyz
     return T
 
 
 def pose_to_tum(T: np.ndarray) -> np.ndarray:
     """Inverse of `pose_from_tum`: array [tx, ty, tz, qx, qy, qz, qw]."""
-    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()])
+    return np.concatenate([T[:3, 3], matrix_to_quat(T[:3, :3])])
+
+
+def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation matrix of shape (3, 3) of a unit quaternion (qx, qy, qz, qw)."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64)
+    return np.array(
+        [
+            [x * x - y * y - z * z + w * w, 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), -x * x + y * y - z * z + w * w, 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), -x * x - y * y + z * z + w * w],
+        ]
+    )
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (qx, qy, qz, qw) of a rotation matrix of shape (3, 3); a matrix that
+    is not quite orthonormal is first replaced by the nearest orthonormal one (SVD)."""
+    R = np.asarray(R, dtype=np.float64)
+    if np.linalg.det(R) <= 0:
+        raise BadInput(f"Expected a rotation matrix (det > 0), got det {np.linalg.det(R):.3g}")
+    if not np.allclose(R @ R.T, np.eye(3), rtol=1e-5, atol=1e-12):
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+    # Markley (2008): build from the largest of the diagonal and the trace, for stability
+    tr = np.trace(R)
+    i = int(np.argmax([R[0, 0], R[1, 1], R[2, 2], tr]))
+    if i == 3:
+        q = [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], 1 + tr]
+    else:
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q = np.empty(4)
+        q[i] = 1 - tr + 2 * R[i, i]
+        q[j] = R[j, i] + R[i, j]
+        q[k] = R[k, i] + R[i, k]
+        q[3] = R[k, j] - R[j, k]
+    q = np.asarray(q, dtype=np.float64)
+    return q / np.linalg.norm(q)
 
 
 def invert(T: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from fleetmap.errors import BadVocabulary
+from fleetmap.errors import BadInput, BadVocabulary
 from fleetmap.features import detect_and_describe
 from fleetmap.gist import GistParams
 from fleetmap.training import collect_images, train_from_images
@@ -66,3 +66,33 @@ def test_training_from_a_robot_folder(sun3d, tmp_path):
     assert Vocabulary.load(tmp_path / "site.npz").vocab_id == v.vocab_id
     ids, counts = v.bow(detect_and_describe(imread(paths[0])).descriptors)
     assert ids.max() < 50 and counts.sum() > 100
+
+
+def test_words_agree_with_faiss_on_real_descriptors(corridor, sun3d, vocabulary):
+    """Word assignment is numpy brute force (no faiss on a robot): the same words as faiss's
+    exact L2 index on real SIFT, and a word is never farther than faiss's choice."""
+    import faiss
+
+    index = faiss.IndexFlatL2(128)
+    index.add(vocabulary.word_centroids)
+    paths = sorted((corridor / "images").glob("*.jpg"))[::4]
+    paths += sorted((sun3d / "robot_a" / "rgb").glob("*.png"))[::5]
+    total = 0
+    for path in paths:
+        d = detect_and_describe(imread(path)).descriptors
+        ours = vocabulary.words(d)
+        _, theirs = index.search(d.astype(np.float32), 1)
+        np.testing.assert_array_equal(ours, theirs[:, 0], err_msg=str(path))
+        total += len(d)
+    assert total > 5000
+
+
+def test_words_is_the_nearest_word_and_checks_its_input():
+    rng = np.random.default_rng(7)
+    v = Vocabulary(rng.random((2, 384)), rng.random((50, 128)) * 255, GistParams())
+    d = rng.integers(0, 256, (200, 128)).astype(np.uint8)
+    dist = ((d[:, None, :].astype(np.float64) - v.word_centroids[None]) ** 2).sum(-1)
+    np.testing.assert_array_equal(v.words(d), dist.argmin(1))
+    assert v.words(np.zeros((0, 128), np.uint8)).shape == (0,)
+    with pytest.raises(BadInput, match=r"shape \(N, 128\), got \(3, 64\)"):
+        v.words(np.zeros((3, 64), np.uint8))
