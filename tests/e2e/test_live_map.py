@@ -25,7 +25,7 @@ from tests.servers import Service
 def fleet(tmp_path_factory):
     """A simulated 3-robot fleet (every pair overlaps) and its true transforms."""
     sim = tmp_path_factory.mktemp("fleet")
-    assert main(["simulate", str(sim), "--robots", "3", "--frames", "16"]) == 0
+    assert main(["simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
     return sim, json.loads((sim / "T_true.json").read_text())
 
 
@@ -59,7 +59,7 @@ def wait_map(
     raise AssertionError(f"{placed} robots not placed within {timeout} s: {m}")
 
 
-def settled(url: str, quiet_s: float = 4.0, timeout: float = 120.0) -> dict:
+def settled(url: str, quiet_s: float = 2.5, timeout: float = 120.0) -> dict:
     """The map once no pair has been aligned for `quiet_s` seconds."""
     end, last, since = time.monotonic() + timeout, None, time.monotonic()
     while time.monotonic() < end:
@@ -114,14 +114,14 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, fleet, tmp_path,
         {"robot": "wall", "reason": "no verified overlap with another robot yet"}
     ]
     m = settled(db.url)  # refinements as overlaps doubled, then nothing new:
-    time.sleep(3)  # no pair aligned again, the version unchanged
+    time.sleep(2)  # no pair aligned again, the version unchanged
     again = httpx.get(db.url + "/map", headers=AUTH).json()
     assert again["version"] == m["version"]
     assert [p["attempts"] for p in again["pairs"]] == [p["attempts"] for p in m["pairs"]]
     check_truth(again, truth)
     assert httpx.get(db.url + "/map").status_code == 401  # token-protected
     kfs = httpx.get(db.url + "/robots/robot1/keyframes", headers=AUTH).json()["keyframes"]
-    assert len(kfs) == 16
+    assert len(kfs) == 12
     view = httpx.get(db.url + f"/keyframes/{kfs[0]['id']}/view", headers=AUTH).json()
     assert view["robot_id"] == "robot1" and view["rgb_type"] == "image/jpeg"
     depth = httpx.get(db.url + f"/keyframes/{kfs[0]['id']}/view/depth", headers=AUTH).content
@@ -139,7 +139,7 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, fleet, tmp_path,
     assert int(ply.split(b"element vertex ")[1].split()[0]) > 1000
     g2o = (out / "pose_graph.g2o").read_text()
     assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
-    assert len((out / "trajectories" / "robot2.txt").read_text().splitlines()) == 1 + 16
+    assert len((out / "trajectories" / "robot2.txt").read_text().splitlines()) == 1 + 12
 
 
 def chromium_dom(url: str, budget_ms: int = 8000) -> str:
@@ -174,7 +174,7 @@ def test_operator_page_in_a_real_browser(live):
     assert f'data-version="{m["version"]}"' in dom  # the script ran and read the map
     assert f"map version {m['version']}: 3 of 4 robots placed, reference robot0" in dom
     for r in ("robot1", "robot2"):
-        row = '<td class="n">16</td><td class="n">16</td><td class="merged">merged</td>'
+        row = '<td class="n">12</td><td class="n">12</td><td class="merged">merged</td>'
         assert f'<tr data-robot="{r}"><td>{r}</td>{row}</tr>' in dom
     assert '<li data-robot="wall">wall: no verified overlap with another robot yet</li>' in dom
     assert 'id="overview" alt="overview of the live map (top-down)" src="blob:' in dom
@@ -227,7 +227,7 @@ def test_restart_mid_stream_loses_nothing_and_resumes_the_map(fleet, aligner, tm
         robots_after = {
             r["robot_id"]: r["keyframes"] for r in httpx.get(db.url + "/robots").json()["robots"]
         }
-        assert robots_after == {"robot0": 16, "robot1": 16, "robot2": 16}
+        assert robots_after == {"robot0": 12, "robot1": 12, "robot2": 12}
     finally:
         db.stop()
     capsys.readouterr()

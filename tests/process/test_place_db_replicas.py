@@ -173,3 +173,50 @@ def test_a_keyframe_failing_detection_is_parked_and_the_rest_go_on(pg_url, frame
         assert db.overlaps("robot_a", "robot_b")  # the others were processed
     finally:
         db.close()
+
+
+def test_replicas_merge_live_once_and_both_serve_the_map(pg_url, tmp_path):
+    """Two replicas with a merge worker each over one database: a simulated fleet streamed
+    through both (comma-separated URLs) is merged within 5 cm / 2 deg of the truth, every
+    pair aligned by one replica only (the advisory lock), and both serve the same map."""
+    import json
+
+    import numpy as np
+
+    from fleetmap.geometry import transform_error
+    from fleetmap.services.cli import main
+
+    sim = tmp_path / "fleet"
+    assert main(["-q", "simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
+    truth = json.loads((sim / "T_true.json").read_text())
+    aligner = Service("aligner").start()
+    env = {"FLEETMAP_PLACE_DB_DATABASE": pg_url, "FLEETMAP_PLACE_DB_ALIGNER": aligner.url}
+    one = Service("place-db", tmp_path / "r1", env=env).start()
+    two = Service("place-db", tmp_path / "r2", env=env).start()
+    try:
+        urls = f"{one.url},{two.url}"
+        assert (
+            main(
+                ["-q", "stream", *(str(sim / r) for r in truth), "--place-db", urls, "--speed", "0"]
+            )
+            == 0
+        )
+
+        def settled() -> bool:
+            m = httpx.get(two.url + "/map", timeout=30).json()
+            w = m["worker"]
+            merged = sum(p["status"] == "merged" for p in m["pairs"])
+            return merged == 3 and w is not None and not w["aligning"] and not w["due"]
+
+        _wait(settled, timeout=300)
+        m = httpx.get(two.url + "/map").json()
+        assert httpx.get(one.url + "/map").json()["transforms"] == m["transforms"]
+        assert m["reference"] == "robot0" and m["unmerged"] == []
+        for robot, T in m["transforms"].items():
+            dt, dr = transform_error(np.array(T), np.array(truth[robot]))
+            assert dt < 0.05 and dr < 2.0, (robot, dt, dr)
+        started = sum(s.read_log().count("live map: aligning") for s in (one, two))
+        assert started == sum(p["attempts"] for p in m["pairs"])  # no pair aligned twice
+    finally:
+        for s in (one, two, aligner):
+            s.stop()
