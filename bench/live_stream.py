@@ -81,7 +81,8 @@ def live_run(dirs: list[str], should_merge: set[str], work: Path) -> dict:
             if placed_at is None and should_merge <= set(m["transforms"]):
                 placed_at = time.monotonic()
             key = [p["attempts"] for p in m["pairs"]]
-            busy = m["worker"] is not None and (m["worker"]["aligning"] or m["worker"]["due"])
+            w = m["worker"]
+            busy = w is None or w["aligning"] or w["due"] or not w.get("quiet")
             if key != attempts or busy:
                 attempts, last_change = key, time.monotonic()
             time.sleep(0.2)

@@ -188,5 +188,6 @@ class LiveMap(BaseModel):
     worker: dict | None = Field(
         None,
         description="the merge worker: `aligning` (the robot pairs being aligned), `due` "
-        "(pairs waiting for a free slot), `since` (unix time of the change)",
+        "(pairs waiting for a free slot), `quiet` (no keyframe for a while: merged pairs get a "
+        "last fit on every overlap), `since` (unix time of the change)",
     )

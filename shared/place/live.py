@@ -46,6 +46,7 @@ class LiveParams:
     refine_min_new: int = 5  # ... and at least this many are new
     failure_backoff_s: float = 10.0  # after the aligner could not be reached
     parallel: int = 2  # pairs aligned at once (the aligner serves two requests at a time)
+    settle_s: float = 5.0  # no keyframe for this long: merged pairs get a last fit
 
 
 def pair_key(a: str, b: str) -> str:
@@ -65,6 +66,8 @@ class LiveMap:
         self.failures = 0
         self._robots_placed = -1  # robots known at the last placement
         self._noted: dict | None = None
+        self._kf_total, self._kf_changed = -1, time.monotonic()
+        self.quiet = False
         self._linker = ThreadPoolExecutor(1, thread_name_prefix="live-link")
 
     # --- the worker thread --------------------------------------------------------------
@@ -161,6 +164,7 @@ class LiveMap:
     def _note(self, flying: dict, due: int) -> None:
         """The worker row `GET /map` shows: the pairs aligning and how many wait."""
         work = {"aligning": [k.split("|") for k in flying], "due": max(0, due - len(flying))}
+        work["quiet"] = self.quiet  # no keyframe for settle_s: last fits done once idle
         if work != self._noted:
             self.db.store.live_put("worker", json.dumps(work | {"since": time.time()}))
             self._noted = work
@@ -194,21 +198,34 @@ class LiveMap:
         verified overlaps; each with its cascade overlaps."""
         placed = set(read_placement(self.db.store).get("transforms", {}))
         now, due = time.monotonic(), []
+        quiet = self._quiet(now)
         for e in self.db.overlap_graph():
             a, b = e["robot_a"], e["robot_b"]
             if self._backoff.get(pair_key(a, b), 0.0) > now:
                 continue
             overlaps = [o for o in self.db.overlaps(a, b) if o.source == "cascade"]
-            if overlaps and self._is_due(states.get(pair_key(a, b)), len(overlaps), a, b):
+            st = states.get(pair_key(a, b))
+            if overlaps and self._is_due(st, len(overlaps), a, b, quiet):
                 joins = (a in placed) != (b in placed) or not placed
                 due.append((not joins, -len(overlaps), a, b, overlaps))
         return [(a, b, o) for *_, a, b, o in sorted(due, key=lambda d: d[:4])]
 
-    def _is_due(self, st: dict | None, n: int, a: str, b: str) -> bool:
+    def _quiet(self, now: float) -> bool:
+        """No keyframe arrived for `settle_s` and none waits for overlap detection: the
+        evidence will not grow by itself."""
+        total = sum(r["keyframes"] for r in self.db.robots())
+        if total != self._kf_total:
+            self._kf_total, self._kf_changed = total, now
+        self.quiet = now - self._kf_changed >= self.params.settle_s and self.db.pending() == 0
+        return self.quiet
+
+    def _is_due(self, st: dict | None, n: int, a: str, b: str, quiet: bool = False) -> bool:
         p = self.params
         if st is None:
             return True
         if st["status"] == "merged":
+            if quiet and n > st["evidence"]:
+                return True  # the robots went quiet: a last fit on every overlap found
             return n >= max(st["evidence"] * p.refine_factor, st["evidence"] + p.refine_min_new)
         if st["status"] == "no_views":
             return self._view_counts(a, b) != tuple(st["views"])

@@ -65,7 +65,8 @@ def settled(url: str, quiet_s: float = 2.5, timeout: float = 120.0) -> dict:
     while time.monotonic() < end:
         m = httpx.get(url + "/map", headers=AUTH, timeout=30).json()
         key = [p["attempts"] for p in m["pairs"]]
-        busy = m["worker"] is not None and (m["worker"]["aligning"] or m["worker"]["due"])
+        w = m["worker"]
+        busy = w is None or w["aligning"] or w["due"] or not w.get("quiet")
         if key != last or busy:
             last, since = key, time.monotonic()
         elif time.monotonic() - since >= quiet_s:

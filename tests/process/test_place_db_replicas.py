@@ -206,7 +206,7 @@ def test_replicas_merge_live_once_and_both_serve_the_map(pg_url, tmp_path):
             m = httpx.get(two.url + "/map", timeout=30).json()
             w = m["worker"]
             merged = sum(p["status"] == "merged" for p in m["pairs"])
-            return merged == 3 and w is not None and not w["aligning"] and not w["due"]
+            return merged == 3 and w is not None and w["quiet"] and not (w["aligning"] or w["due"])
 
         _wait(settled, timeout=300)
         m = httpx.get(two.url + "/map").json()
