@@ -41,6 +41,7 @@ class LiveParams:
 
     poll_s: float = 1.0  # how often the overlaps are looked at
     max_views: int = 12  # per robot and pair, as `fleetmap merge --max-views`
+    first_views: int = 8  # a pair's first fit: 8x8 views, about half the time of 12x12
     retry_min_new: int = 1  # a refused pair: tried again after this many new overlaps
     refine_factor: float = 2.0  # a merged pair: aligned again once its overlaps doubled
     refine_min_new: int = 5  # ... and at least this many are new
@@ -224,11 +225,13 @@ class LiveMap:
         if st is None:
             return True
         if st["status"] == "merged":
-            if quiet and n > st["evidence"]:
-                return True  # the robots went quiet: a last fit on every overlap found
+            if quiet and (n > st["evidence"] or st.get("budget", p.max_views) < p.max_views):
+                return True  # the robots went quiet: a last fit on every overlap and view
             return n >= max(st["evidence"] * p.refine_factor, st["evidence"] + p.refine_min_new)
         if st["status"] == "no_views":
             return self._view_counts(a, b) != tuple(st["views"])
+        if quiet and st.get("budget", p.max_views) < p.max_views:
+            return True  # refused on the first, smaller fit: once more with every view
         return n >= st["evidence"] + p.retry_min_new
 
     def _view_counts(self, a: str, b: str) -> tuple[int, int]:
@@ -243,7 +246,12 @@ class LiveMap:
         st = {"robot_a": a, "robot_b": b, "evidence": len(overlaps), "at": time.time()}
         st["attempts"] = (before or {}).get("attempts", 0) + 1
         ranked = sorted(overlaps, key=lambda o: -o.inliers)
-        views = [self._views(a, [o.kf_a for o in ranked]), self._views(b, [o.kf_b for o in ranked])]
+        k = self.params.first_views if before is None else self.params.max_views
+        st["budget"] = k  # views per robot this fit could use
+        views = [
+            self._views(a, [o.kf_a for o in ranked], k),
+            self._views(b, [o.kf_b for o in ranked], k),
+        ]
         if not all(views):
             missing = [r for r, v in zip((a, b), views, strict=True) if not v]
             reason = f"no RGB-D view stored near the overlaps for {', '.join(missing)}"
@@ -263,10 +271,11 @@ class LiveMap:
             return st | fit | {"status": "merged", "transform": T.tolist()}
         log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
         if before is not None and before["status"] == "merged":
-            return before | {"evidence": st["evidence"], "last_refusal": answer["reason"]}
+            keep = {k: st[k] for k in ("evidence", "attempts", "budget")}
+            return before | keep | {"last_refusal": answer["reason"]}
         return st | fit | {"status": "refused"}
 
-    def _views(self, robot: str, seeds: list[int]) -> list:
+    def _views(self, robot: str, seeds: list[int], max_views: int) -> list:
         """The robot's views to align: verified keyframes first, spread as in a batch merge."""
         store = self.db.store
         with_view = store.view_ids(store.robot_code(robot))
@@ -278,7 +287,7 @@ class LiveMap:
             return []
         cand = list(dict.fromkeys(seed + with_view))
         look = np.array([look_at(self._pose(k)) for k in cand])
-        chosen = sorted(cand[i] for i in spread(len(seed), look, self.params.max_views))
+        chosen = sorted(cand[i] for i in spread(len(seed), look, max_views))
         return [stored_view(self.db.load_frame(k), *self.db.view_bytes(k)) for k in chosen]
 
     def _pose(self, kf_id: int) -> np.ndarray:

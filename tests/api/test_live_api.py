@@ -16,7 +16,7 @@ from fleetmap.extract import FrameExtractor, keyframe_indices
 from fleetmap.frame import encode
 from fleetmap.geometry import transform_error
 from fleetmap.pairs import load_view
-from fleetmap.place.live import LiveMap
+from fleetmap.place.live import LiveMap, LiveParams
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
 from fleetmap.view import encode_view
@@ -119,7 +119,8 @@ def test_the_merge_worker_places_the_pair_and_every_replica_serves_it(settings, 
             pairs = [(views[id(x)], views[id(y)]) for x, y in pairs]
             return align_request(pairs, "default", DEFAULT_ALIGN)[0]
 
-        live = LiveMap(app.state.db, align)
+        never_quiet = LiveParams(settle_s=3600)  # no last fit: one alignment exactly
+        live = LiveMap(app.state.db, align, never_quiet)
         assert live.tick() is True and live.tick() is False and len(calls) == 1
         m = client.get("/map").json()
         assert m["reference"] == "alpha" and m["unmerged"] == [] and m["version"] >= 1
@@ -135,4 +136,5 @@ def test_the_merge_worker_places_the_pair_and_every_replica_serves_it(settings, 
     with TestClient(create_app(settings)) as other:  # a restart, or a second replica
         again = other.get("/map").json()
         assert again["transforms"] == m["transforms"] and again["version"] == m["version"]
-        assert LiveMap(other.app.state.db, align).tick() is False and len(calls) == 1
+        assert LiveMap(other.app.state.db, align, never_quiet).tick() is False
+        assert len(calls) == 1
