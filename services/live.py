@@ -144,15 +144,18 @@ def write_live_outputs(out: Path, m: dict, cloud: bytes, picture: bytes, tracks,
     """report.json, merged.ply, overview.png, overlap_matrix.png, pose_graph.g2o and
     trajectories/ (keyframe poses: the live map holds keyframes only)."""
     from fleetmap import pictures
-    from fleetmap.services.outputs import REPORT_VERSION, TRANSFORM_CONVENTION, write_g2o
+    from fleetmap.services.outputs import (
+        REPORT_VERSION,
+        TRANSFORM_CONVENTION,
+        write_g2o,
+        write_tum,
+    )
 
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
     (out / "merged.ply").write_bytes(cloud)
     (out / "overview.png").write_bytes(picture)
     for r, rows in tracks.items():
-        lines = [f"# timestamp tx ty tz qx qy qz qw (camera to {m['reference']}'s map frame)"]
-        lines += [f"{row[0]:.6f} " + " ".join(f"{x:.6f}" for x in row[1:]) for row in rows]
-        (out / "trajectories" / f"{r}.txt").write_text("\n".join(lines) + "\n")
+        write_tum(out / "trajectories" / f"{r}.txt", rows, m["reference"])
     placed = {r: np.array(T) for r, T in m["transforms"].items()}
     fits = [p for p in m["pairs"] if p["status"] == "merged"]
     edges = {

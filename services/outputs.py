@@ -87,12 +87,19 @@ def write_pictures(out: Path, ids: list[str], d: Drawing, report: dict) -> None:
 
 def _write_trajectory(path: Path, rec: Recording, T_ref_map: np.ndarray, ref: str) -> None:
     """Every frame's camera pose in the global frame, TUM format."""
-    lines = [f"# timestamp tx ty tz qx qy qz qw (camera to {ref}'s map frame)"]
-    lines += [
-        f"{f.stamp:.6f} " + " ".join(f"{x:.6f}" for x in pose_to_tum(T_ref_map @ f.T_map_cam))
+    rows = [
+        [f.stamp, *pose_to_tum(T_ref_map @ f.T_map_cam)]
         for f in rec.frames
         if f.T_map_cam is not None
     ]
+    write_tum(path, rows, ref)
+
+
+def write_tum(path: Path, rows, ref: str) -> None:
+    """A trajectory file in TUM format: rows [stamp, tx, ty, tz, qx, qy, qz, qw], the
+    camera in `ref`'s map frame."""
+    lines = [f"# timestamp tx ty tz qx qy qz qw (camera to {ref}'s map frame)"]
+    lines += [f"{row[0]:.6f} " + " ".join(f"{x:.6f}" for x in row[1:]) for row in rows]
     path.write_text("\n".join(lines) + "\n")
 
 

@@ -101,7 +101,7 @@ def _tasks(
                 views,
             )
             out.append((f.stamp - f0 if by_time else 0.0, t))
-    return [t for _, t in sorted(out, key=lambda x: x[0])] if by_time else [t for _, t in out]
+    return [t for _, t in sorted(out, key=lambda x: x[0])]  # stable: robot order without
 
 
 @contextlib.contextmanager

@@ -326,9 +326,9 @@ class LiveMap:
         return old
 
 
-def robot_order(db) -> list[str]:
+def robot_order(db, robots: list[dict] | None = None) -> list[str]:
     """Robot names in order of arrival (their store codes)."""
-    names = [r["robot_id"] for r in db.robots()]
+    names = [r["robot_id"] for r in (db.robots() if robots is None else robots)]
     codes = {n: db.store.robot_code(n) for n in names}
     return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])
 

@@ -12,11 +12,10 @@ from collections import OrderedDict
 
 import numpy as np
 
+from fleetmap.extract_pool import CLOUD_MAX_DEPTH_M, CLOUD_STRIDE  # as `fleetmap merge`
 from fleetmap.geometry import apply, pose_to_tum
 from fleetmap.place.live import load_states, read_placement, robot_order
 
-CLOUD_STRIDE = 4  # every 4th pixel of a view, as `fleetmap merge`
-CLOUD_MAX_DEPTH_M = 6.0
 BASE_VOXEL_M = 0.02  # each robot's cloud is kept at this voxel size, then re-voxelised
 
 
@@ -25,11 +24,12 @@ def map_document(db) -> dict:
     "reason"}], "robots", "updated_at"} and, for the operator, "fleet" (per robot:
     keyframes, views, state), "pairs" (the merge worker's pair states) and "overlaps"."""
     m = read_placement(db.store)
-    names = robot_order(db)
+    robots = db.robots()
+    names = robot_order(db, robots)
     states = load_states(db.store)
     graph = db.overlap_graph()
     placed = m.get("transforms", {})
-    counts = {r["robot_id"]: r["keyframes"] for r in db.robots()}
+    counts = {r["robot_id"]: r["keyframes"] for r in robots}
     fleet = []
     for r in names:
         n_views = len(db.store.view_ids(db.store.robot_code(r) or -1))
@@ -93,14 +93,16 @@ class MapRenderer:
     def __init__(self, db, max_cached_robots: int = 64):
         self.db = db
         self._lock = threading.RLock()  # matplotlib and the caches: one at a time
-        self._poses: dict[int, np.ndarray] = {}
+        self._poses: dict[int, tuple[float, np.ndarray | None]] = {}  # id -> stamp, pose
         self._clouds: OrderedDict[str, tuple[set, np.ndarray, np.ndarray]] = OrderedDict()
         self._max_cached = max_cached_robots
         self._overview: tuple[tuple, bytes] | None = None
 
-    def pose(self, kf_id: int) -> np.ndarray | None:
+    def pose(self, kf_id: int) -> tuple[float, np.ndarray | None]:
+        """A keyframe's stamp and camera pose (read once: they never change)."""
         if kf_id not in self._poses:
-            self._poses[kf_id] = self.db.load_frame(kf_id).T_map_cam
+            f = self.db.load_frame(kf_id)
+            self._poses[kf_id] = (f.stamp, f.T_map_cam)
         return self._poses[kf_id]
 
     def robot_cloud(self, robot: str) -> tuple[np.ndarray, np.ndarray]:
@@ -159,9 +161,8 @@ class MapRenderer:
             T = np.array(T)
             rows = []
             for kf in self.db.store.robot_keyframe_ids(self.db.store.robot_code(r) or -1):
-                P = self.pose(kf)
+                stamp, P = self.pose(kf)
                 if P is not None:
-                    stamp = self.db.keyframe_info(kf)["stamp"]
                     rows.append([stamp, *pose_to_tum(T @ P).tolist()])
             out[r] = rows
         return out
