@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -38,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fleetmap.align import fpfh_ransac_icp  # noqa: E402
-from fleetmap.dataset import read_recording  # noqa: E402
-from fleetmap.geometry import apply, pose_to_tum, transform_error  # noqa: E402
+from fleetmap.dataset import cut_recording, read_recording  # noqa: E402
+from fleetmap.geometry import apply, transform_error  # noqa: E402
 from fleetmap.lazy import LazyModule  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
 from fleetmap.pairs import load_view  # noqa: E402
@@ -60,32 +58,8 @@ def random_frame(rng: np.random.Generator) -> np.ndarray:
 
 
 def write_cut(src: Path, frames: slice, dst: Path, T_new_old: np.ndarray) -> None:
-    """A robot folder of `src`'s frames[frames], its poses moved by T_new_old; images linked."""
-    rec = read_recording(src)
-    dst.mkdir(parents=True)
-    for sub in ("rgb", "depth"):
-        (dst / sub).mkdir()
-    if (src / "camera.json").exists():
-        (dst / "camera.json").write_text((src / "camera.json").read_text())
-    rgb, depth, gt = [], [], []
-    for f in rec.frames[frames]:
-        for sub, path, rows in (("rgb", f.rgb_path, rgb), ("depth", f.depth_path, depth)):
-            _link(path, dst / sub / path.name)
-            rows.append(f"{f.stamp:.6f} {sub}/{path.name}")
-        gt.append(
-            f"{f.stamp:.6f} " + " ".join(f"{x:.9f}" for x in pose_to_tum(T_new_old @ f.T_map_cam))
-        )
-    for name, rows in (("rgb.txt", rgb), ("depth.txt", depth), ("groundtruth.txt", gt)):
-        (dst / name).write_text("\n".join(rows) + "\n")
-
-
-def _link(src: Path, dst: Path) -> None:
-    """A hard link where the file system allows (the reader refuses symlinks that leave
-    the robot folder), else a copy."""
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copyfile(src, dst)
+    """A robot folder of `src`'s frames[frames], its poses moved by T_new_old."""
+    cut_recording(src, frames, dst, T_new_old)
 
 
 def cases(data: Path) -> dict[str, list[tuple[str, Path, slice, np.ndarray]]]:

@@ -265,11 +265,11 @@ def cmd_align(args: argparse.Namespace) -> int:
 
     from fleetmap.client import AlignerClient, PlaceDBClient
     from fleetmap.extract import keyframe_indices
-    from fleetmap.pairs import pair_views
+    from fleetmap.pairs import overlaps_to_align, pair_views
 
     rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
     with PlaceDBClient(args.place_db, token=args.token) as db:
-        overlaps = db.overlaps(rec_a.robot_id, rec_b.robot_id, wait=args.wait)
+        overlaps = overlaps_to_align(db, rec_a.robot_id, rec_b.robot_id, wait=args.wait)
     kfs = [keyframe_indices(r, _policy(args)) for r in (rec_a, rec_b)]
     views = pair_views(overlaps, rec_a, rec_b, *kfs, args.max_views)
     if not views:

@@ -27,7 +27,7 @@ from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
 from fleetmap.extract_pool import extract_keyframes
 from fleetmap.mapcloud import MapCloud
-from fleetmap.pairs import pair_views
+from fleetmap.pairs import overlaps_to_align, pair_views
 from fleetmap.placement import optimise_poses, spanning_placement
 from fleetmap.services.embedded import check_reachable, start_services
 from fleetmap.services.outputs import build_report, write_maps, write_pictures
@@ -153,7 +153,7 @@ def find_overlaps(db, ids: list[str]) -> tuple[list[dict], dict]:
     overlaps, by_pair = [], {}
     for i, a in enumerate(ids):
         for b in ids[i + 1 :]:
-            pairs = db.overlaps(a, b, wait=600)
+            pairs = overlaps_to_align(db, a, b, wait=600)
             by_pair[(a, b)] = pairs
             overlaps += [
                 {k: p[k] for k in OVERLAP_KEYS}

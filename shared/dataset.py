@@ -211,3 +211,33 @@ def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
         if name:
             return name, Path(path)
     return None, Path(arg)
+
+
+def cut_recording(src: Path, frames: slice, dst: Path, T_new_old: np.ndarray) -> Path:
+    """A robot folder at `dst` holding `src`'s frames[frames], their poses moved into
+    another map frame (T_new_old maps src's map into the new one): a robot made from part
+    of a recording, for benchmarks, tests and demos. Images are hard-linked where the file
+    system allows (the reader refuses symlinks leaving the folder), else copied."""
+    import os
+    import shutil
+
+    from fleetmap.geometry import pose_to_tum
+
+    rec = read_recording(src)
+    for sub in ("rgb", "depth"):
+        (dst / sub).mkdir(parents=True)
+    if (src / "camera.json").exists():
+        (dst / "camera.json").write_text((src / "camera.json").read_text())
+    rows: dict[str, list[str]] = {"rgb": [], "depth": [], "groundtruth": []}
+    for f in rec.frames[frames]:
+        for sub, path in (("rgb", f.rgb_path), ("depth", f.depth_path)):
+            try:
+                os.link(path, dst / sub / path.name)
+            except OSError:
+                shutil.copyfile(path, dst / sub / path.name)
+            rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
+        pose = " ".join(f"{x:.9f}" for x in pose_to_tum(T_new_old @ f.T_map_cam))
+        rows["groundtruth"].append(f"{f.stamp:.6f} {pose}")
+    for name, lines in rows.items():
+        (dst / f"{name}.txt").write_text("\n".join(lines) + "\n")
+    return dst

@@ -9,6 +9,14 @@ from fleetmap.dataset import FrameRecord, Recording, load_depth, load_rgb
 from fleetmap.errors import BadRobotData
 
 
+def overlaps_to_align(db, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
+    """The overlaps between two robots (a `PlaceDBClient`'s items) to choose views from:
+    the verified and co-visible ones, or where there is none, the place database's
+    nominated keyframe pairs (`fleetmap.place.nominate`): the aligner's gate decides."""
+    pairs = db.overlaps(robot_a, robot_b, wait=wait)
+    return pairs or db.overlaps(robot_a, robot_b, source="nominated")
+
+
 def frame_at(rec: Recording, stamp: float, tol: float = 1e-3) -> int:
     """Index of the recording's frame at `stamp`."""
     stamps = np.array([f.stamp for f in rec.frames])

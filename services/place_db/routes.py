@@ -13,6 +13,7 @@ from starlette.concurrency import run_in_threadpool
 from fleetmap.errors import BadInput, Forbidden, PayloadTooLarge, Unauthorized
 from fleetmap.frame import decode
 from fleetmap.place import Candidate, PlaceDB
+from fleetmap.place.nominate import nominated_overlaps
 from fleetmap.services.common import (
     ERROR_RESPONSES,
     any_token,
@@ -242,12 +243,13 @@ async def overlaps(
     robot_a: str | None = None,
     robot_b: str | None = None,
     wait: float = Query(0.0, ge=0.0, le=600.0),
-    source: Literal["all", "cascade", "link"] = "all",
+    source: Literal["all", "cascade", "link", "nominated"] = "all",
 ) -> s.Overlaps:
     """Verified keyframe pairs between two robots, or without robots the overlap graph.
     `wait` seconds at most for keyframes still queued for overlap detection (an async wait:
     it holds no worker thread); `source` keeps only the cascade's pairs or only those
-    co-visible under a registered link."""
+    co-visible under a registered link; "nominated": not overlaps but where to align when
+    none is verified (the BoW-nearest keyframe pairs, computed on request)."""
     db = _db(request)
     end = time.monotonic() + wait
     while db.pending() and time.monotonic() < end:
@@ -274,7 +276,11 @@ def _overlaps(db: PlaceDB, robot_a, robot_b, source) -> s.Overlaps:
             matches=o.matches,
             source=o.source,
         )
-        for o in db.overlaps(robot_a, robot_b)
+        for o in (
+            nominated_overlaps(db, robot_a, robot_b)
+            if source == "nominated"
+            else db.overlaps(robot_a, robot_b)
+        )
         if source in ("all", o.source)
     ]
     return s.Overlaps(overlaps=pairs, pending=db.pending())

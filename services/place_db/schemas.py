@@ -94,7 +94,9 @@ class OverlapPair(BaseModel):
         "cascade",
         description="cascade: verified by the retrieval cascade (inliers = epipolar "
         "inliers); link: co-visible under a registered map alignment (inliers = feature "
-        "points of one keyframe seen by the other's camera, matches = its feature points)",
+        "points of one keyframe seen by the other's camera, matches = its feature points); "
+        "nominated (only with source=nominated): not verified, the BoW-nearest keyframe "
+        "pairs where the aligner should look when none is (inliers = matches = 0)",
     )
 
 

@@ -42,9 +42,10 @@ def align_views(
     t0 = time.perf_counter()
     if not pairs:
         raise BadInput("Give at least one RGB-D pair")
+    depth = scene_depth(pairs)
     C, R = verified_and_raw(pairs, pair_features(pairs))
-    res = _align(C, R, pairs, p)
-    res.correspondences = len(R)
+    res = _align(C, R, pairs, p, depth)
+    res.correspondences, res.scene_depth_m = len(R), depth
     res.seconds = time.perf_counter() - t0
     log.info(
         "alignment: merged=%s (%s), %d correspondences, %.1f s",
@@ -56,7 +57,21 @@ def align_views(
     return res
 
 
-def _align(C: Correspondences, R: Correspondences, pairs, p: AlignParams) -> AlignResult:
+def scene_depth(pairs: list[tuple[RGBDView, RGBDView]]) -> float:
+    """Median depth (metres) of the pairs' views: the median of each distinct view's
+    median reading (every 16th pixel)."""
+    views = {id(v): v for pr in pairs for v in pr}.values()
+    meds = []
+    for v in views:
+        d = v.depth[::4, ::4]
+        d = d if d.any() else v.depth
+        meds.append(float(np.median(d[d > 0])) / v.intrinsics.depth_scale)
+    return float(np.median(meds))
+
+
+def _align(
+    C: Correspondences, R: Correspondences, pairs, p: AlignParams, depth: float
+) -> AlignResult:
     """C: verified (epipolar) correspondences, R: raw matches of every pair."""
     if len(R) < p.min_inliers:
         return AlignResult(
@@ -85,7 +100,7 @@ def _align(C: Correspondences, R: Correspondences, pairs, p: AlignParams) -> Ali
         hypotheses=[h.summary() for h in [best, *rivals]],
     )
     out.reason = (_geometry_gate(best, rivals, p) if p.use_icp else "") or _match_gate(
-        out, R, inl, p
+        out, R, inl, p, p.spread_needed(depth)
     )
     if out.reason:
         return out
@@ -114,13 +129,15 @@ def _geometry_gate(best, rivals, p: AlignParams) -> str:
     return ""
 
 
-def _match_gate(out: AlignResult, R: Correspondences, inl: np.ndarray, p: AlignParams) -> str:
+def _match_gate(
+    out: AlignResult, R: Correspondences, inl: np.ndarray, p: AlignParams, need_spread: float
+) -> str:
     """Why the inlier matches refuse the fit (count, spread, held-out residual), or ""."""
     if out.inliers < p.min_inliers:
         return f"{out.inliers} inlier correspondences (need {p.min_inliers})"
     sp = spread(R.X[inl])
-    if sp < p.min_spread_m:
-        return f"inliers spread {sp:.2f} m (need {p.min_spread_m})"
+    if sp < need_spread:
+        return f"inliers spread {sp:.2f} m (need {need_spread:.2f} at this depth)"
     out.holdout_m = holdout_residual(R.X[inl], R.Y[inl])
     if not out.holdout_m <= p.max_holdout_m:
         return f"held-out residual {out.holdout_m:.3f} m (max {p.max_holdout_m})"

@@ -48,6 +48,15 @@ class AlignParams:
     use_icp: bool = True
     colour_icp: bool = True
     try_mlp: bool = True
+    min_spread_rel: float = 0.075  # or this share of the views' median depth, if less
+
+    def spread_needed(self, depth_m: float) -> float:
+        """The inliers' spread (metres) the gate needs for views whose median depth is
+        `depth_m`: `min_spread_m`, or less for a nearer scene (0.075 x depth: 0.15 m at
+        2 m, 7.5 cm for a desk seen from a metre). The spread guards the rotation: its
+        error grows as depth noise over spread, and a depth camera's noise and the scene
+        it frames both shrink with distance."""
+        return min(self.min_spread_m, self.min_spread_rel * depth_m)
 
 
 DEFAULT_ALIGN = AlignParams()
@@ -98,6 +107,7 @@ class AlignResult:
     mlp: MLPEstimator | None = field(default=None, repr=False)
     hypotheses: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    scene_depth_m: float = float("nan")  # the views' median depth: the gate's lengths follow it
 
     def to_dict(self) -> dict:
         d = {
@@ -111,6 +121,7 @@ class AlignResult:
             "mlp_holdout_residual_m": _num(self.mlp_holdout_m),
             "hypotheses": self.hypotheses,
             "seconds": self.seconds,
+            "scene_depth_m": _num(self.scene_depth_m),
         }
         if self.T_a_b is not None:
             d["transform"] = self.T_a_b.tolist()
@@ -123,10 +134,6 @@ class AlignResult:
         if self.mlp is not None:
             return self.mlp.transform(points_b)
         return apply(self.T_a_b, points_b)
-
-
-def _num(x):
-    return None if x is None or not np.isfinite(x) else float(x)
 
 
 def _num(x):

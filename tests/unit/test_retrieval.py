@@ -200,3 +200,18 @@ def test_schema_1_database_is_migrated_keeping_everything(sun3d_db, vocabulary, 
         assert again.links() == []
     finally:
         again.close()
+
+
+def test_nominated_pairs_are_the_bow_nearest_with_distinct_keyframes():
+    """Where the cascade verified nothing, the aligner is pointed at the BoW-nearest pairs:
+    nearest first, each keyframe once, none without a visual word in common."""
+    from fleetmap.place.nominate import nominate
+
+    D = np.array([[0.5, 0.9, 1.0], [0.4, 0.95, 1.0], [1.0, 1.0, 1.0]])  # rows: A, cols: B
+    ids_a, ids_b = [10, 11, 12], [20, 21, 22]
+
+    def bow(kf, others):
+        return D[ids_a.index(kf)] if kf in ids_a else D[:, ids_b.index(kf)]
+
+    assert nominate(ids_a, ids_b, bow, k=4) == [(11, 20, 0.4), (10, 21, 0.9)]
+    assert nominate(ids_a, [], bow) == []

@@ -1,0 +1,267 @@
+"""Merge recall by true overlap: windows of every real recording as robots, `fleetmap merge`
+beside the map_merge_3d recipe.
+
+    .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
+        [--only sun3d hololens tum_rpy cross] [--json out.json]
+
+Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
+hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
+seconds are cut from it at different times, each window a robot in its own random map frame.
+The true overlap of a window pair is the share of B's fused map (every 5th frame, 5 cm
+voxels) within 5 cm of A's under the true transform. Pairs are drawn per overlap bin
+(under 10%, 10-20%, 20-50%, over 50%), `--per-bin` of each where the recording has them,
+windows never sharing a frame. `cross`: windows of *different* recordings, which share no
+place: any merge there is wrong.
+
+Per pair: merged or not, the mean displacement of B's map points against the truth (what a
+merged map shows), the end-to-end wall time of `fleetmap merge` (a subprocess, start-up
+included); the recipe (every 10th frame fused at 5 cm, FPFH + RANSAC + point-to-plane ICP,
+Open3D) with `--seeds` seeds and its time. A merge is right within 5 cm, wrong beyond 10 cm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_pairs import ROOT, _mean_disp, every_nth_views, random_frame, write_cut  # noqa: E402
+
+from fleetmap.align import fpfh_ransac_icp  # noqa: E402
+from fleetmap.dataset import read_recording  # noqa: E402
+from fleetmap.geometry import apply  # noqa: E402
+from fleetmap.lazy import LazyModule  # noqa: E402
+from fleetmap.mapcloud import views_cloud  # noqa: E402
+from fleetmap.pairs import load_view  # noqa: E402
+
+o3d = LazyModule("open3d")
+DATA = ROOT.parent / "shared" / "data"
+BINS = ((0.0, 0.1, "<10%"), (0.1, 0.2, "10-20%"), (0.2, 0.5, "20-50%"), (0.5, 1.01, ">50%"))
+RIGHT_CM, WRONG_CM = 5.0, 10.0
+
+
+def timelines(data: Path) -> dict[str, dict]:
+    """recording -> {segments: [(folder, T_common_folder)], window, step} (frames)."""
+    out = {}
+    sun, hl, rpy = data / "sun3d_studyroom", data / "hololens_lounge", data / "tum_fr1_rpy"
+    if sun.exists():
+        T = np.loadtxt(sun / "T_a_b.txt")
+        segs = [(sun / "robot_a", np.eye(4)), (sun / "robot_b", T)]
+        out["sun3d"] = {"segments": segs, "window": 20, "step": 5}
+    if hl.exists():
+        T = np.loadtxt(hl / "T_a_b.txt")
+        segs = [(hl / "hl_a", np.eye(4)), (hl / "hl_b", T)]
+        out["hololens"] = {"segments": segs, "window": 60, "step": 15}
+    if rpy.exists():
+        out["tum_rpy"] = {"segments": [(rpy, np.eye(4))], "window": 50, "step": 10}
+    return out
+
+
+def windows(spec: dict) -> list[tuple[int, Path, slice]]:
+    """(global start, folder, frame slice) of every window within one segment."""
+    out, base = [], 0
+    for folder, _ in spec["segments"]:
+        n = len(read_recording(folder))
+        for i in range(0, n - spec["window"] + 1, spec["step"]):
+            out.append((base + i, folder, slice(i, i + spec["window"])))
+        base += n
+    return out
+
+
+class Clouds:
+    """Fused window clouds in the recording's common frame, cached per window."""
+
+    def __init__(self, spec: dict):
+        self.T = {str(f): T for f, T in spec["segments"]}
+        self.cache: dict = {}
+
+    def get(self, folder: Path, sl: slice):
+        key = (str(folder), sl.start)
+        if key not in self.cache:
+            rec = read_recording(folder)
+            views = [load_view(rec, i) for i in range(len(rec))[sl][::5]]
+            pc = views_cloud(views, voxel=0.05, with_color=False)
+            pts = apply(self.T[str(folder)], np.asarray(pc.points))
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+            self.cache[key] = (pts, o3d.geometry.KDTreeFlann(cloud))
+        return self.cache[key]
+
+    def overlap(self, wa, wb) -> float:
+        """Share of B's fused points within 5 cm of A's (common frame)."""
+        _, tree = self.get(wa[1], wa[2])
+        pb, _ = self.get(wb[1], wb[2])
+        near = sum(tree.search_knn_vector_3d(p, 1)[2][0] < 0.05**2 for p in pb[::3])
+        return near / max(len(pb[::3]), 1)
+
+
+def draw_pairs(name: str, spec: dict, per_bin: int, rng) -> list[dict]:
+    """Window pairs with no frame in common, `per_bin` per overlap bin at random."""
+    clouds, ws = Clouds(spec), windows(spec)
+    by_bin: dict[str, list] = {b: [] for *_, b in BINS}
+    L = spec["window"]
+    for i, wa in enumerate(ws):
+        for wb in ws[i + 1 :]:
+            if wb[0] < wa[0] + L:
+                continue
+            ov = clouds.overlap(wa, wb)
+            b = next(b for lo, hi, b in BINS if lo <= ov < hi)
+            by_bin[b].append((wa, wb, ov))
+    out = []
+    for b, items in by_bin.items():
+        for k in rng.permutation(len(items))[:per_bin]:
+            wa, wb, ov = items[k]
+            out.append({"recording": name, "bin": b, "overlap": ov, "a": wa, "b": wb})
+    return out
+
+
+def cross_pairs(specs: dict, rng) -> list[dict]:
+    """One window of each recording against one of each other: no common place."""
+    names = sorted(specs)
+    out = []
+    for i, x in enumerate(names):
+        for y in names[i + 1 :]:
+            wx, wy = windows(specs[x]), windows(specs[y])
+            wa, wb = wx[rng.integers(len(wx))], wy[rng.integers(len(wy))]
+            out.append({"recording": f"{x}|{y}", "bin": "none", "overlap": 0.0, "a": wa, "b": wb})
+    return out
+
+
+def run_pair(k: int, pair: dict, specs: dict, work: Path, seeds: int, rng) -> dict:
+    """fleetmap merge on the pair's two windows, the recipe beside it."""
+    T_common = {}
+    for spec in specs.values():
+        T_common |= {str(f): T for f, T in spec["segments"]}
+    dirs, M = [], {}
+    for r, (_, folder, sl) in (("A", pair["a"]), ("B", pair["b"])):
+        M[r] = random_frame(rng)  # robot map <- folder's map
+        write_cut(folder, sl, work / f"p{k}" / r, M[r])
+        dirs.append(f"{r}={work / f'p{k}' / r}")
+    out = work / f"p{k}-out"
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [str(ROOT / ".venv" / "bin" / "fleetmap"), "-q", "merge", *dirs, "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    row = {k2: pair[k2] for k2 in ("recording", "bin", "overlap")}
+    row["windows"] = [f"{w[1].name}[{w[2].start}:{w[2].stop}]" for w in (pair["a"], pair["b"])]
+    row["wall_s"] = time.perf_counter() - t
+    if proc.returncode != 0:
+        raise RuntimeError(f"pair {k}: merge failed: {proc.stderr[-2000:]}")
+    report = json.loads((out / "report.json").read_text())
+    T = report["transforms"].get("B")
+    row["merged"] = T is not None
+    row["reason"] = next((f["reason"] for f in report["fits"] if not f["merged"]), "")
+    if not report["fits"] and not row["merged"]:
+        row["reason"] = "no verified keyframe pair"
+    row["overlaps"] = len([o for o in report["overlaps"] if o.get("source") != "link"])
+    pb = np.asarray(
+        views_cloud(every_nth_views(work / f"p{k}" / "B", 5), voxel=0.05, with_color=False).points
+    )
+    T_true = None
+    if pair["bin"] != "none":
+        fa, fb = str(pair["a"][1]), str(pair["b"][1])
+        # A's map <- common <- B's map
+        T_true = M["A"] @ np.linalg.inv(T_common[fa]) @ T_common[fb] @ np.linalg.inv(M["B"])
+    if T is not None:
+        row["error_cm"] = 100 * _mean_disp(np.array(T), T_true, pb) if T_true is not None else None
+    row["recipe"] = []
+    if T_true is not None:
+        va = every_nth_views(work / f"p{k}" / "A")
+        vb = every_nth_views(work / f"p{k}" / "B")
+        for seed in range(seeds):
+            t = time.perf_counter()
+            Tr, _ = fpfh_ransac_icp(va, vb, seed=seed)
+            row["recipe"].append((100 * _mean_disp(Tr, T_true, pb), time.perf_counter() - t))
+    return row
+
+
+def verdict(row: dict) -> str:
+    if not row["merged"]:
+        return "missed" if row["bin"] != "none" else "right"
+    if row["bin"] == "none":
+        return "wrong"
+    e = row["error_cm"]
+    return "right" if e <= RIGHT_CM else ("wrong" if e > WRONG_CM else "loose")
+
+
+def table(rows: list[dict]) -> str:
+    """Counts by bin: fleetmap right / loose / wrong / missed; the recipe right and wrong
+    (mean over seeds); median error of right merges; median wall times."""
+    lines = [
+        "| true overlap | pairs | fleetmap right (<= 5 cm) | loose | wrong (> 10 cm) | missed | "
+        "fleetmap median error | recipe right | recipe wrong | fleetmap time | recipe time |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for *_, b in (*BINS, (0, 0, "none")):
+        rs = [r for r in rows if r["bin"] == b]
+        if not rs:
+            continue
+        v = [verdict(r) for r in rs]
+        errs = [r["error_cm"] for r, x in zip(rs, v, strict=True) if x == "right"]
+        rec = [r["recipe"] for r in rs if r["recipe"]]
+        rr = sum(np.mean([e <= RIGHT_CM for e, _ in x]) for x in rec)
+        rw = sum(np.mean([e > WRONG_CM for e, _ in x]) for x in rec)
+        rt = [t for x in rec for _, t in x]
+        label = "none (different recordings)" if b == "none" else b
+        lines.append(
+            f"| {label} | {len(rs)} | {v.count('right')} | {v.count('loose')} | "
+            f"{v.count('wrong')} | {v.count('missed')} | "
+            f"{np.median(errs) if errs else float('nan'):.1f} cm | "
+            f"{rr:.1f} | {rw:.1f} | {np.median([r['wall_s'] for r in rs]):.1f} s | "
+            f"{np.median(rt) if rt else float('nan'):.1f} s |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--seeds", type=int, default=1, help="recipe seeds per pair")
+    ap.add_argument("--per-bin", type=int, default=3, help="pairs per overlap bin per recording")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", nargs="*", help="recordings (and/or 'cross') to run")
+    ap.add_argument("--json", type=Path, help="write every row here")
+    args = ap.parse_args()
+    rng = np.random.default_rng(args.seed)
+    specs = timelines(args.data)
+    if not specs:
+        sys.exit(f"recall.py: no recordings under {args.data}")
+    pairs = []
+    for name, spec in specs.items():
+        drawn = draw_pairs(name, spec, args.per_bin, rng)
+        if not args.only or name in args.only:
+            pairs += drawn
+    cross = cross_pairs(specs, rng)
+    if not args.only or "cross" in args.only:
+        pairs += cross
+    print(f"{len(pairs)} pairs", flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="fleetmap-recall-") as tmp:
+        for k, pair in enumerate(pairs):
+            row = run_pair(k, pair, specs, Path(tmp), args.seeds, rng)
+            rows.append(row)
+            err = f"{row['error_cm']:.1f} cm" if row.get("error_cm") is not None else "-"
+            rec = ", ".join(f"{e:.1f}" for e, _ in row["recipe"]) or "-"
+            print(
+                f"{row['recording']} {row['bin']} {100 * row['overlap']:.0f}% "
+                f"{' '.join(row['windows'])}: {verdict(row)} {err} overlaps={row['overlaps']} "
+                f"{row['wall_s']:.1f} s recipe [{rec}] {row['reason']}",
+                flush=True,
+            )
+            if args.json:
+                args.json.write_text(json.dumps(rows, indent=1, default=str))
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
