@@ -50,7 +50,9 @@ def start_live_map(db: PlaceDB, settings: Settings) -> LiveMap | None:
     return live
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None, announce: bool = True) -> FastAPI:
+    """The app; `announce`: log its access control at start-up (the caller does when it
+    knows the listening address: `fleetmap serve`, the services `merge` starts itself)."""
     settings = settings or Settings()
 
     @asynccontextmanager
@@ -66,7 +68,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         where = app.state.db.stats()["db_path"]
         log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)
-        log.warning("place database: %s", common.auth_summary(settings))
+        if announce:
+            log.warning("place database: %s", common.auth_summary(settings))
         app.state.renderer = MapRenderer(app.state.db)
         app.state.live = start_live_map(app.state.db, settings)
         yield
