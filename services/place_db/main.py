@@ -11,7 +11,7 @@ from fleetmap.place import PlaceDB, RetrainPolicy
 from fleetmap.place.live import LiveMap
 from fleetmap.place.live_view import MapRenderer
 from fleetmap.services import common
-from fleetmap.services.place_db import live_routes
+from fleetmap.services.place_db import live_routes, scene_routes
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.routes import router
 from fleetmap.vocabulary import load_vocabulary
@@ -91,4 +91,6 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
     common.install_docs(app)
     app.include_router(router)
     app.include_router(live_routes.router)
+    app.include_router(scene_routes.router)  # the page's 3D view
+    scene_routes.install_static(app)
     return app

@@ -168,6 +168,60 @@ def chromium_dom(url: str, budget_ms: int = 8000) -> str:
     return proc.stdout
 
 
+def chromium_screenshot(url: str, size: str = "900,700", budget_ms: int = 10000) -> np.ndarray:
+    """The page as Debian's headless chromium draws it with software WebGL (SwiftShader):
+    BGR pixels."""
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.fail("chromium is not installed: scripts/install.sh installs Debian's chromium")
+    with tempfile.TemporaryDirectory() as tmp:
+        shot = f"{tmp}/shot.png"
+        proc = subprocess.run(
+            [
+                exe,
+                "--headless",
+                "--no-sandbox",
+                "--use-gl=swiftshader",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                f"--user-data-dir={tmp}/profile",
+                f"--window-size={size}",
+                f"--virtual-time-budget={budget_ms}",
+                f"--screenshot={shot}",
+                url,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return cv2.imread(shot)
+
+
+def test_3d_view_draws_every_placed_robot_offline(live):
+    """Issue 25: the page's 3D view, three.js served by the place database itself."""
+    from fleetmap.mapcloud import ROBOT_COLOURS
+
+    db, _ = live
+    r = httpx.get(db.url + "/map/robots/robot1/cloud.bin", headers=AUTH)
+    n = int(r.headers["x-points"])
+    assert r.status_code == 200 and len(r.content) == 15 * n and 1000 < n and len(r.content) <= 2e6
+    xyz = np.frombuffer(r.content, "<f4", 3 * n).reshape(n, 3)
+    assert np.isfinite(xyz).all()
+    assert httpx.get(db.url + "/map/robots/robot1/cloud.bin").status_code == 401
+    assert httpx.get(db.url + "/map/robots/nobody/cloud.bin", headers=AUTH).status_code == 404
+    lines = httpx.get(db.url + "/map/lines", headers=AUTH).json()
+    assert lines["overlaps"] and {ln[0] for ln in lines["overlaps"]} <= {"robot0", "robot1"}
+    page = httpx.get(db.url + "/").text
+    assert "/static/map3d/three/three.module.js" in page and "://" not in page  # no CDN
+    img = chromium_screenshot(f"{db.url}/#token={TOKEN}&view=3d").astype(int)
+    # each placed robot's points in its own colour (drawn unlit, colours as given)
+    for k, robot in enumerate(["robot0", "robot1", "robot2", "wall"]):
+        bgr = np.round(ROBOT_COLOURS[k][::-1] * 255)
+        near = (np.abs(img - bgr).max(axis=2) <= 6).sum()
+        assert (near > 300) if robot != "wall" else (near == 0), (robot, near)
+
+
 def test_operator_page_in_a_real_browser(live):
     db, _ = live
     m = httpx.get(db.url + "/map", headers=AUTH).json()
