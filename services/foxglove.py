@@ -59,7 +59,7 @@ def write_fleet_mcap(out: Path, report: dict, lines: list | None = None) -> Path
     the report's overlaps between keyframes of the trajectories. Returns the file's path."""
     from mcap_protobuf.writer import Writer
 
-    ref, transforms = report["reference"], report["transforms"]
+    ref, transforms = report["reference"] or "fleet", report["transforms"]  # None: none placed
     names = list(report["robots"])
     tracks = {
         r: _read_tum(out / "trajectories" / f"{r}.txt")

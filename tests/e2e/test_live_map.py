@@ -141,6 +141,14 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, fleet, tmp_path,
     g2o = (out / "pose_graph.g2o").read_text()
     assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
     assert len((out / "trajectories" / "robot2.txt").read_text().splitlines()) == 1 + 12
+    from mcap.reader import make_reader  # fleet.mcap, as merge writes it (issue 25)
+
+    with (out / "fleet.mcap").open("rb") as f:
+        topics = {c.topic: s.name for s, c, _ in make_reader(f).iter_messages()}
+    assert (
+        topics["/fleet/robot2/cloud"] == "foxglove.PointCloud" and "/fleet/wall/cloud" not in topics
+    )
+    assert topics["/tf"] == "foxglove.FrameTransform"
 
 
 def chromium_dom(url: str, budget_ms: int = 8000) -> str:

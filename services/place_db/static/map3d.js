@@ -6,6 +6,7 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/OrbitControls.js";
 
+document.body.dataset.three3dMs = Math.round(performance.now());  // three.js loaded and parsed
 const canvas = document.getElementById("view3d");
 const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
 renderer.setPixelRatio(1);
@@ -92,19 +93,20 @@ async function show(m, get) {
   if (key === shownKey || busy) return;
   busy = true;
   try {
-    const lines = await (await get("/map/lines")).json();
+    // everything at once: the lines, the tracks and every cloud that changed
+    const changed = m.robots.filter((r) => r in m.transforms && clouds.get(r)?.views !== views[r]);
+    const [lines, traj] = await Promise.all([
+      get("/map/lines").then((r) => r.json()),
+      get("/map/trajectories").then((r) => r.json()),
+      ...changed.map((r) => loadCloud(get, r, views[r])),
+    ]);
     colours = lines.colours;
-    for (const r of m.robots) {
+    for (const [r, c] of clouds) {
       const placed = r in m.transforms;
-      const c = clouds.get(r);
-      if (placed && (!c || c.views !== views[r])) await loadCloud(get, r, views[r]);
-      const now = clouds.get(r);
-      if (now) {
-        now.points.visible = placed;
-        if (placed) now.points.matrix.copy(rowMajor(m.transforms[r]));
-      }
+      c.points.visible = placed;
+      if (placed) c.points.matrix.copy(rowMajor(m.transforms[r]));
+      c.points.material.dispose(); c.points.material = material(r);  // colours may be new
     }
-    const traj = await (await get("/map/trajectories")).json();
     setLines(tracks, Object.entries(traj).map(([r, rows]) => [r, rows.map((row) => row.slice(1, 4))]), robotColour);
     setLines(links, [["overlaps", lines.overlaps.flatMap((l) => [l.slice(2, 5), l.slice(5, 8)])]], () => 0xffd21a);
     if (!fitted) fit();
