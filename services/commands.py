@@ -344,6 +344,11 @@ def cmd_merge(args: argparse.Namespace) -> int:
     if report["unmerged"]:
         print(f"unmerged (no trustworthy overlap): {', '.join(report['unmerged'])}")
     print(f"results: {out / 'report.json'}, {out / 'merged.ply'}, {out / 'overview.png'}")
+    print(
+        f"look at: {out / 'overview.png'} (the map from above); {out / 'fleet.mcap'} in "
+        "Foxglove (docs/OPERATIONS.md); the map in 3D while robots stream: `fleetmap serve` "
+        "and `fleetmap stream`, then http://127.0.0.1:8100/ (README, 'The live map')"
+    )
     return 0
 
 

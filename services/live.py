@@ -134,7 +134,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
         f"in {m['reference']}'s frame; results: {out / 'report.json'}, {out / 'merged.ply'}, "
-        f"{out / 'overview.png'}"
+        f"{out / 'overview.png'}, {out / 'fleet.mcap'} (Foxglove)"
     )
     for u in m["unmerged"]:
         print(f"unmerged {u['robot']}: {u['reason']}")
