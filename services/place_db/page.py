@@ -2,9 +2,9 @@
 every two seconds with the operator token (from the address, `/#token=...`, or typed in
 and kept for the tab's session) sent as a bearer header, and shows the overview picture,
 the robots with their keyframes and merge state, the overlap matrix and why robots are not
-merged, and the map in 3D (`static/map3d.js`, three.js served by the place database
-itself; `/#view=3d` shows it alone in the window). No external asset: it works on an
-offline robot network."""
+merged, and the map in 3D (`static/map3d.js`, bundled with three.js into `map3d.bundle.js`
+and served by the place database itself; `/#view=3d` shows it alone in the window). No
+external asset: it works on an offline robot network."""
 
 PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8">
@@ -138,8 +138,6 @@ async function refresh() {
 refresh();
 setInterval(refresh, 2000);
 </script>
-<script type="importmap">{"imports": {"three": "/static/map3d/three/three.module.js",
-"three/addons/": "/static/map3d/three/"}}</script>
-<script type="module" src="/static/map3d/map3d.js"></script>
+<script type="module" src="/static/map3d/map3d.bundle.js"></script>
 </body></html>
 """

@@ -221,7 +221,9 @@ def test_3d_view_draws_every_placed_robot_offline(live):
     lines = httpx.get(db.url + "/map/lines", headers=AUTH).json()
     assert lines["overlaps"] and {ln[0] for ln in lines["overlaps"]} <= {"robot0", "robot1"}
     page = httpx.get(db.url + "/").text
-    assert "/static/map3d/three/three.module.js" in page and "://" not in page  # no CDN
+    assert "/static/map3d/map3d.bundle.js" in page and "://" not in page  # no CDN
+    bundle = httpx.get(db.url + "/static/map3d/map3d.bundle.js")  # code, no data: no token
+    assert bundle.status_code == 200 and b"Three.js Authors" in bundle.content
     img = chromium_screenshot(f"{db.url}/#token={TOKEN}&view=3d").astype(int)
     # each placed robot's points in its own colour (drawn unlit, colours as given)
     for k, robot in enumerate(["robot0", "robot1", "robot2", "wall"]):

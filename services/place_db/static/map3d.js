@@ -3,6 +3,7 @@
 // draws each placed robot's cloud (GET /map/robots/R/cloud.bin, in R's own map frame,
 // placed by transforms[R]), its keyframe track (GET /map/trajectories) and the verified
 // overlaps (GET /map/lines), z up as in ROS. Orbit: left drag; pan: right drag; zoom: wheel.
+// The page loads map3d.bundle.js: this file with three.js, built by scripts/build_map3d.sh.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/OrbitControls.js";
 
