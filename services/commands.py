@@ -95,7 +95,8 @@ def cmd_extract(args: argparse.Namespace) -> int:
     n = len(keyframe_indices(rec, _policy(args)))
     total = 0
     frames = extract_recording(rec, extractor, _policy(args))
-    for frame in tqdm(frames, total=n, desc=f"extract {rec.robot_id}", unit="kf"):
+    bar = tqdm(frames, total=n, desc=f"extract {rec.robot_id}", unit="kf", disable=args.quiet)
+    for frame in bar:
         data = encode(frame)
         (out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf").write_bytes(data)
         total += len(data)
@@ -117,7 +118,9 @@ def cmd_vocab_train(args: argparse.Namespace) -> int:
         n_gist_clusters=args.gist_clusters,
         n_words=args.words,
         seed=args.seed,
-        progress=lambda it: tqdm(it, total=len(paths), desc="describe", unit="img"),
+        progress=lambda it: tqdm(
+            it, total=len(paths), desc="describe", unit="img", disable=args.quiet
+        ),
         source=args.source or ", ".join(str(i) for i in args.inputs),
     )
     vocab.save(args.output)
@@ -166,12 +169,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
             from fleetmap.place.postgres_schema import check_reachable
 
             check_reachable(settings.store)  # down or refused: one line, exit 1
-        app = create_app(settings)
+        app = create_app(settings, announce=False)  # the start line below says it
     else:
         from fleetmap.services.aligner.config import Settings as AlignerSettings
         from fleetmap.services.aligner.main import create_app as create_aligner
 
-        app = create_aligner(_settings(AlignerSettings))
+        app = create_aligner(_settings(AlignerSettings), announce=False)
     port = args.port or (8100 if args.service == "place-db" else 8200)
     from fleetmap.services.common import auth_summary
 
@@ -181,7 +184,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         version(),
         args.host,
         port,
-        auth_summary(app.state.settings),
+        auth_summary(app.state.settings, args.host),
     )
     uvicorn.run(
         app,
@@ -211,7 +214,7 @@ def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tup
         total=n,
         desc=f"ingest {rec.robot_id}",
         unit="kf",
-        disable=getattr(args, "quiet", False),
+        disable=args.quiet,
     ):
         client.add_keyframe(frame)
     return rec.robot_id, n
@@ -341,6 +344,11 @@ def cmd_merge(args: argparse.Namespace) -> int:
     if report["unmerged"]:
         print(f"unmerged (no trustworthy overlap): {', '.join(report['unmerged'])}")
     print(f"results: {out / 'report.json'}, {out / 'merged.ply'}, {out / 'overview.png'}")
+    print(
+        f"look at: {out / 'overview.png'} (the map from above); {out / 'fleet.mcap'} in "
+        "Foxglove (docs/OPERATIONS.md); the map in 3D while robots stream: `fleetmap serve` "
+        "and `fleetmap stream`, then http://127.0.0.1:8100/ (README, 'The live map')"
+    )
     return 0
 
 
@@ -355,7 +363,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
         raise BadInput(f"--robots must be at least 1, got {args.robots}")
     simulate_fleet(
-        out, args.robots, args.frames, args.seed, progress=lambda it, **kw: tqdm(it, **kw)
+        out,
+        args.robots,
+        args.frames,
+        args.seed,
+        progress=lambda it, **kw: tqdm(it, disable=args.quiet, **kw),
     )
     print(
         f"{args.robots} robots x {args.frames} frames -> {out} (true transforms: "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import ipaddress
 import logging
 import os
 import re
@@ -182,11 +183,26 @@ class PixelBudget:
                 self._cond.notify_all()
 
 
-def auth_summary(settings) -> str:
-    """One line for the start-up log; never the tokens themselves."""
+def is_loopback(host: str | None) -> bool:
+    """Whether a listening address is reachable from this machine only."""
+    if host is None:
+        return False
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def auth_summary(settings, host: str | None = None) -> str:
+    """One line for the start-up log; never the tokens themselves. `host`: the listening
+    address when known; an open service on loopback is no alarm (this machine only)."""
     op = settings.operator_token is not None
     n = len(settings.robot_tokens)
     if not op and not n:
+        if is_loopback(host):
+            return "access control off: no tokens, on loopback: this machine only"
         return "access control OFF: no tokens configured, anyone on the network may read and write"
     return f"access control on: operator token {'set' if op else 'not set'}, {n} robot tokens"
 

@@ -32,11 +32,11 @@ def embedded_service(kind: str, data_dir: Path | None = None):
         from fleetmap.services.place_db.config import Settings
         from fleetmap.services.place_db.main import create_app
 
-        app = create_app(Settings(data_dir=data_dir) if data_dir else Settings())
+        app = create_app(Settings(data_dir=data_dir) if data_dir else Settings(), announce=False)
     else:
         from fleetmap.services.aligner.main import create_app as create_aligner
 
-        app = create_aligner()
+        app = create_aligner(announce=False)  # on loopback, for this command only
     port = _free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, name=f"embedded-{kind}", daemon=True)

@@ -129,21 +129,25 @@ def cmd_map(args: argparse.Namespace) -> int:
         cloud = client.map_file("cloud.ply", voxel=max(args.voxel, 0.02))
         picture = client.map_file("overview.png")
         tracks = client.map_trajectories()
-    write_live_outputs(out, m, cloud, picture, tracks, args.place_db)
+        lines = json.loads(client.map_file("lines"))["overlaps"]
+    write_live_outputs(out, m, cloud, picture, tracks, args.place_db, lines)
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
         f"in {m['reference']}'s frame; results: {out / 'report.json'}, {out / 'merged.ply'}, "
-        f"{out / 'overview.png'}"
+        f"{out / 'overview.png'}, {out / 'fleet.mcap'} (Foxglove)"
     )
     for u in m["unmerged"]:
         print(f"unmerged {u['robot']}: {u['reason']}")
     return 0
 
 
-def write_live_outputs(out: Path, m: dict, cloud: bytes, picture: bytes, tracks, source) -> None:
-    """report.json, merged.ply, overview.png, overlap_matrix.png, pose_graph.g2o and
-    trajectories/ (keyframe poses: the live map holds keyframes only)."""
+def write_live_outputs(
+    out: Path, m: dict, cloud: bytes, picture: bytes, tracks, source, lines=None
+) -> None:
+    """report.json, merged.ply, overview.png, overlap_matrix.png, pose_graph.g2o,
+    trajectories/ (keyframe poses: the live map holds keyframes only) and fleet.mcap."""
     from fleetmap import pictures
+    from fleetmap.services.foxglove import write_fleet_mcap
     from fleetmap.services.outputs import (
         REPORT_VERSION,
         TRANSFORM_CONVENTION,
@@ -191,3 +195,4 @@ def write_live_outputs(out: Path, m: dict, cloud: bytes, picture: bytes, tracks,
     if names:
         pictures.overlap_matrix(out / "overlap_matrix.png", names, {"overlaps": overlaps})
     (out / "report.json").write_text(json.dumps(report, indent=2))
+    write_fleet_mcap(out, report, lines)

@@ -30,6 +30,7 @@ from fleetmap.mapcloud import MapCloud
 from fleetmap.pairs import overlaps_to_align, pair_views
 from fleetmap.placement import optimise_poses, spanning_placement
 from fleetmap.services.embedded import check_reachable, start_services
+from fleetmap.services.foxglove import write_fleet_mcap
 from fleetmap.services.outputs import build_report, write_maps, write_pictures
 from fleetmap.vocabulary import load_vocabulary
 
@@ -100,6 +101,7 @@ def run_merge(
     report = build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params)
     with timed(timing, "outputs"):
         write_pictures(out, ids, drawing, report)
+        write_fleet_mcap(out, report)  # Foxglove's schemas, from the files written
     timing["total"] = time.perf_counter() - t_all
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))

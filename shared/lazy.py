@@ -14,7 +14,17 @@ from fleetmap.errors import MissingDependency
 #: The fix for a missing library of the `server` extra.
 SERVER_FIX = "pip install 'fleetmap[server]'"
 #: Import names of the `server` extra that the services and `fleetmap merge` need.
-SERVER_MODULES = ("fastapi", "uvicorn", "scipy", "faiss", "torch", "open3d", "matplotlib")
+SERVER_MODULES = (
+    "fastapi",
+    "uvicorn",
+    "scipy",
+    "faiss",
+    "torch",
+    "open3d",
+    "matplotlib",
+    "mcap_protobuf",  # fleet.mcap: merge and map write it
+    "foxglove_schemas_protobuf",
+)
 
 
 def require(what: str, modules: tuple[str, ...] = SERVER_MODULES) -> None:

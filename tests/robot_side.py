@@ -34,6 +34,9 @@ SERVER_IMPORTS: dict[str, tuple[str, ...]] = {
     "psycopg": ("psycopg", "psycopg_binary"),
     "psycopg-pool": ("psycopg_pool",),
     "threadpoolctl": ("threadpoolctl",),
+    "mcap": ("mcap",),
+    "mcap-protobuf-support": ("mcap_protobuf",),
+    "foxglove-schemas-protobuf": ("foxglove_schemas_protobuf",),
 }
 BLOCKED = tuple(name for names in SERVER_IMPORTS.values() for name in names)
 

@@ -13,7 +13,9 @@ from fleetmap.services.aligner.config import Settings
 from fleetmap.services.aligner.routes import router
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None, announce: bool = True) -> FastAPI:
+    """The app; `announce`: log its access control at start-up (the caller does when it
+    knows the listening address: `fleetmap serve`, the services `merge` starts itself)."""
     settings = settings or Settings()
 
     @asynccontextmanager
@@ -25,7 +27,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.pixels = common.PixelBudget(
             settings.max_pixels_in_flight, requests=settings.max_requests_in_flight
         )
-        logging.getLogger(__name__).warning("aligner: %s", common.auth_summary(settings))
+        if announce:
+            logging.getLogger(__name__).warning("aligner: %s", common.auth_summary(settings))
         yield
         app.state.clouds.clear()
 

@@ -11,7 +11,7 @@ from fleetmap.place import PlaceDB, RetrainPolicy
 from fleetmap.place.live import LiveMap
 from fleetmap.place.live_view import MapRenderer
 from fleetmap.services import common
-from fleetmap.services.place_db import live_routes
+from fleetmap.services.place_db import live_routes, scene_routes
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.routes import router
 from fleetmap.vocabulary import load_vocabulary
@@ -50,7 +50,9 @@ def start_live_map(db: PlaceDB, settings: Settings) -> LiveMap | None:
     return live
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None, announce: bool = True) -> FastAPI:
+    """The app; `announce`: log its access control at start-up (the caller does when it
+    knows the listening address: `fleetmap serve`, the services `merge` starts itself)."""
     settings = settings or Settings()
 
     @asynccontextmanager
@@ -66,7 +68,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         where = app.state.db.stats()["db_path"]
         log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)
-        log.warning("place database: %s", common.auth_summary(settings))
+        if announce:
+            log.warning("place database: %s", common.auth_summary(settings))
         app.state.renderer = MapRenderer(app.state.db)
         app.state.live = start_live_map(app.state.db, settings)
         yield
@@ -88,4 +91,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     common.install_docs(app)
     app.include_router(router)
     app.include_router(live_routes.router)
+    app.include_router(scene_routes.router)  # the page's 3D view
+    scene_routes.install_static(app)
     return app

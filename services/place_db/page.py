@@ -2,7 +2,9 @@
 every two seconds with the operator token (from the address, `/#token=...`, or typed in
 and kept for the tab's session) sent as a bearer header, and shows the overview picture,
 the robots with their keyframes and merge state, the overlap matrix and why robots are not
-merged. No external asset: it works on an offline robot network."""
+merged, and the map in 3D (`static/map3d.js`, bundled with three.js into `map3d.bundle.js`
+and served by the place database itself; `/#view=3d` shows it alone in the window). No
+external asset: it works on an offline robot network."""
 
 PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8">
@@ -22,6 +24,10 @@ td.n { text-align: right; }
 .reference { color: #063; font-weight: bold; } .merged { color: #063; } .unmerged { color: #a40; }
 #overview { max-width: 640px; width: 100%; border: 1px solid #ddd; }
 #login { display: none; margin: 1em 0; }
+#view3d { width: 640px; height: 420px; display: block; border: 1px solid #ddd; }
+body.only3d main > section:not(#s3d), body.only3d h1 { display: none; }
+body.only3d #view3d { width: calc(100vw - 3em); height: calc(100vh - 7em); }
+body.only3d { margin: .5em; }
 </style></head>
 <body>
 <h1>fleetmap live map</h1>
@@ -30,6 +36,10 @@ td.n { text-align: right; }
 <form id="login"><label>Operator token <input id="token" type="password" autocomplete="off">
 </label> <button>Show the map</button></form>
 <main>
+<section id="s3d"><canvas id="view3d"></canvas>
+<div>colour <select id="colour3d"><option value="robot">by robot</option>
+<option value="image">image colour</option></select> <button id="fit3d">fit</button>
+drag: turn, right drag: pan, wheel: zoom; <a href="#view=3d">3D only</a></div></section>
 <section><img id="overview" alt="overview of the live map (top-down)"></section>
 <section>
 <h2>Robots</h2>
@@ -47,7 +57,12 @@ td.n { text-align: right; }
 const $ = (id) => document.getElementById(id);
 let token = new URLSearchParams(location.hash.slice(1)).get("token")
   || sessionStorage.getItem("fleetmap-token") || "";
+if (token) sessionStorage.setItem("fleetmap-token", token);  // kept across #view=3d
 let shown = null;
+if (new URLSearchParams(location.hash.slice(1)).get("view") === "3d") {
+  document.body.classList.add("only3d");
+}
+window.addEventListener("hashchange", () => location.reload());
 
 function cell(row, text, cls) {
   const td = row.insertCell(); td.textContent = text; if (cls) td.className = cls; return td;
@@ -104,6 +119,8 @@ async function refresh() {
   try {
     const m = await (await get("/map")).json();
     render(m);
+    window.fleetmapLast = {map: m, get};  // the 3D view (map3d.js) draws it
+    window.dispatchEvent(new CustomEvent("fleetmap-map", {detail: window.fleetmapLast}));
     const key = m.version + ":" + m.fleet.map((f) => f.views).join(",");
     if (key !== shown) {
       const png = await (await get("/map/overview.png")).blob();
@@ -121,5 +138,6 @@ async function refresh() {
 refresh();
 setInterval(refresh, 2000);
 </script>
+<script type="module" src="/static/map3d/map3d.bundle.js"></script>
 </body></html>
 """

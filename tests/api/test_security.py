@@ -95,6 +95,20 @@ def test_open_deployment_says_so(tmp_path, caplog):
     assert "access control OFF" in caplog.text
 
 
+def test_an_open_service_is_an_alarm_beyond_loopback_only():
+    """Issue 25: services `merge` starts itself on loopback printed 'anyone on the network
+    may read and write'."""
+    from fleetmap.services.common import auth_summary
+
+    open_ = Settings()
+    for host in ("127.0.0.1", "localhost", "::1"):
+        assert "anyone on the network" not in auth_summary(open_, host)
+    for host in ("0.0.0.0", "192.168.1.20", "::", None):
+        assert "access control OFF" in auth_summary(open_, host)
+    secured = Settings(operator_token=OP)
+    assert auth_summary(secured, "0.0.0.0").startswith("access control on")
+
+
 def test_compressed_bodies_are_refused_and_nothing_is_stored(tmp_path):
     with TestClient(create_app(Settings(data_dir=tmp_path, max_body_bytes=100_000))) as c:
         bomb = gzip.compress(bytes(50_000_000))  # 50 MB of zeros in ~50 KB

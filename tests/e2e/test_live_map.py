@@ -141,6 +141,14 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, fleet, tmp_path,
     g2o = (out / "pose_graph.g2o").read_text()
     assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
     assert len((out / "trajectories" / "robot2.txt").read_text().splitlines()) == 1 + 12
+    from mcap.reader import make_reader  # fleet.mcap, as merge writes it (issue 25)
+
+    with (out / "fleet.mcap").open("rb") as f:
+        topics = {c.topic: s.name for s, c, _ in make_reader(f).iter_messages()}
+    assert (
+        topics["/fleet/robot2/cloud"] == "foxglove.PointCloud" and "/fleet/wall/cloud" not in topics
+    )
+    assert topics["/tf"] == "foxglove.FrameTransform"
 
 
 def chromium_dom(url: str, budget_ms: int = 8000) -> str:
@@ -166,6 +174,62 @@ def chromium_dom(url: str, budget_ms: int = 8000) -> str:
         )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return proc.stdout
+
+
+def chromium_screenshot(url: str, size: str = "900,700", budget_ms: int = 10000) -> np.ndarray:
+    """The page as Debian's headless chromium draws it with software WebGL (SwiftShader):
+    BGR pixels."""
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.fail("chromium is not installed: scripts/install.sh installs Debian's chromium")
+    with tempfile.TemporaryDirectory() as tmp:
+        shot = f"{tmp}/shot.png"
+        proc = subprocess.run(
+            [
+                exe,
+                "--headless",
+                "--no-sandbox",
+                "--use-gl=swiftshader",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                f"--user-data-dir={tmp}/profile",
+                f"--window-size={size}",
+                f"--virtual-time-budget={budget_ms}",
+                f"--screenshot={shot}",
+                url,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        return cv2.imread(shot)
+
+
+def test_3d_view_draws_every_placed_robot_offline(live):
+    """Issue 25: the page's 3D view, three.js served by the place database itself."""
+    from fleetmap.mapcloud import ROBOT_COLOURS
+
+    db, _ = live
+    r = httpx.get(db.url + "/map/robots/robot1/cloud.bin", headers=AUTH)
+    n = int(r.headers["x-points"])
+    assert r.status_code == 200 and len(r.content) == 15 * n and 1000 < n and len(r.content) <= 2e6
+    xyz = np.frombuffer(r.content, "<f4", 3 * n).reshape(n, 3)
+    assert np.isfinite(xyz).all()
+    assert httpx.get(db.url + "/map/robots/robot1/cloud.bin").status_code == 401
+    assert httpx.get(db.url + "/map/robots/nobody/cloud.bin", headers=AUTH).status_code == 404
+    lines = httpx.get(db.url + "/map/lines", headers=AUTH).json()
+    assert lines["overlaps"] and {ln[0] for ln in lines["overlaps"]} <= {"robot0", "robot1"}
+    page = httpx.get(db.url + "/").text
+    assert "/static/map3d/map3d.bundle.js" in page and "://" not in page  # no CDN
+    bundle = httpx.get(db.url + "/static/map3d/map3d.bundle.js")  # code, no data: no token
+    assert bundle.status_code == 200 and b"Three.js Authors" in bundle.content
+    img = chromium_screenshot(f"{db.url}/#token={TOKEN}&view=3d").astype(int)
+    # each placed robot's points in its own colour (drawn unlit, colours as given)
+    for k, robot in enumerate(["robot0", "robot1", "robot2", "wall"]):
+        bgr = np.round(ROBOT_COLOURS[k][::-1] * 255)
+        near = (np.abs(img - bgr).max(axis=2) <= 6).sum()
+        assert (near > 300) if robot != "wall" else (near == 0), (robot, near)
 
 
 def test_operator_page_in_a_real_browser(live):

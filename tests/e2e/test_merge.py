@@ -23,11 +23,12 @@ PLY_ROW = np.dtype(
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "fr1_pair"
 
 
-def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys):
+def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys, caplog):
     out = tmp_path / "out"
     args = ["merge", str(EXAMPLE / "alpha"), str(EXAMPLE / "bravo"), "--out", str(out), "--pcd"]
     assert main(args) == 0
     assert "merged 2 of 2 robots" in capsys.readouterr().out
+    assert "access control" not in caplog.text  # its own services, on loopback (issue 25)
     report = json.loads((out / "report.json").read_text())
     assert report["reference"] == "alpha" and report["unmerged"] == []
     assert report["robots"]["bravo"]["keyframes"] == 1

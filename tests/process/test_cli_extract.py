@@ -13,6 +13,16 @@ def test_extract_writes_one_decodable_frame_per_keyframe(tum_robot, tmp_path, ca
     assert "2 keyframes" in capsys.readouterr().out
 
 
+def test_extract_draws_its_progress_bar_unless_quiet(tum_robot, tmp_path, capsys):
+    """Issue 25: `-q` turned merge's bars off but not extract's."""
+    for quiet in (False, True):
+        args = ["extract", str(tum_robot), "-o", str(tmp_path / f"q{quiet}")]
+        assert main(["-q", *args] if quiet else args) == 0
+        captured = capsys.readouterr()
+        assert ("extract" in captured.err and "kf/s" in captured.err) is not quiet
+        assert "keyframes of" in captured.out  # the result line stays
+
+
 def test_extract_reports_missing_folder(tmp_path, capsys):
     assert main(["extract", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o")]) == 1
     assert "Robot folder not found" in capsys.readouterr().err
