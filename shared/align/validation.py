@@ -9,7 +9,7 @@ import numpy as np
 
 from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply
-from fleetmap.registration import kabsch
+from fleetmap.registration import fit_affine, kabsch
 
 
 def kfold_residuals(
@@ -36,14 +36,20 @@ def rigid_fit(X: np.ndarray, Y: np.ndarray) -> Callable[[np.ndarray], np.ndarray
     return lambda P: apply(T, P)
 
 
+def affine_fit(X: np.ndarray, Y: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    T = fit_affine(X, Y)
+    return lambda P: apply(T, P)
+
+
 def holdout_residual(
     X: np.ndarray, Y: np.ndarray, folds: int = 5, seed: int = 0, model: str = "rigid"
 ) -> float:
-    """Median residual of each fold predicted by a fit on the other folds (metres)."""
+    """Median residual of each fold predicted by a fit on the other folds (metres);
+    `model`: "rigid", "affine" (closed forms) or "mlp"."""
     if len(X) < 2 * folds:
         return float("inf")
-    if model == "rigid":
-        fit = rigid_fit
+    if model in ("rigid", "affine"):
+        fit = rigid_fit if model == "rigid" else affine_fit
     else:
 
         def fit(Xt, Yt):
