@@ -30,6 +30,13 @@ import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.pairs import look_at, spread
+from fleetmap.place.live_state import (
+    incarnation,
+    load_states,
+    pair_key,
+    read_placement,
+    update_states,
+)
 from fleetmap.view import stored_view
 
 log = logging.getLogger(__name__)
@@ -50,10 +57,6 @@ class LiveParams:
     settle_s: float = 5.0  # no keyframe for this long: merged pairs get a last fit
 
 
-def pair_key(a: str, b: str) -> str:
-    return "|".join(sorted((a, b)))
-
-
 class LiveMap:
     """The merge worker. `align(pairs)` is the aligner's `/align` (a list of (RGBDView of
     A, RGBDView of B)) returning its JSON answer: `AlignerClient.align`."""
@@ -70,6 +73,7 @@ class LiveMap:
         self._kf_total, self._kf_changed = -1, time.monotonic()
         self.quiet = False
         self._linker = ThreadPoolExecutor(1, thread_name_prefix="live-link")
+        self._leading = True  # False once the store's lock was lost: nothing is stored
 
     # --- the worker thread --------------------------------------------------------------
 
@@ -89,8 +93,8 @@ class LiveMap:
         exclusive = getattr(self.db.store, "exclusive", None)
         while not self._stop.is_set():
             try:
-                with exclusive("live map") if exclusive else contextlib.nullcontext():
-                    self._lead()
+                with exclusive("live map") if exclusive else contextlib.nullcontext() as held:
+                    self._lead(held)
             except Conflict:
                 pass  # another replica is merging
             except Exception:  # a store or aligner hiccup must not end the worker
@@ -98,12 +102,19 @@ class LiveMap:
                 log.exception("live map: merge worker failed; starting again")
             self._stop.wait(self.params.poll_s)
 
-    def _lead(self) -> None:
+    def _lead(self, held: Callable[[], bool] | None = None) -> None:
         """Keep up to `parallel` pairs aligning at once (the aligner takes two requests
-        at a time, one per core); store each result and place the fleet as it comes."""
+        at a time, one per core); store each result and place the fleet as it comes.
+        Stops at once when `held()` says the store's lock was lost (another replica may
+        lead now): results still aligning are then dropped, never stored."""
         flying: dict[str, Future] = {}
+        self._leading = True
         with ThreadPoolExecutor(self.params.parallel, thread_name_prefix="live-align") as pool:
             while not self._stop.is_set():
+                if held is not None and not held():
+                    log.warning("live map: the merge lock was lost; no longer leading")
+                    self._leading = False
+                    return
                 for key in [k for k, f in flying.items() if f.done()]:
                     self._finish(key, flying.pop(key))
                 states = load_states(self.db.store)
@@ -143,11 +154,22 @@ class LiveMap:
             self.failures += 1
             log.warning("live map: %s", exc)
             return
-        states = load_states(self.db.store)
-        states[key] = result
-        save_states(self.db.store, states)
-        self.place(states)
-        self._link(result)
+        if self._store_result(key, result):
+            self.place(load_states(self.db.store))
+            self._link(result)
+
+    def _store_result(self, key: str, result: dict) -> bool:
+        """Store a pair's new state (compare-and-set), unless a robot of the pair was
+        deleted (or deleted and posted again) while it was aligned: False then."""
+        if not self._leading:
+            return False
+        a, b = result["robot_a"], result["robot_b"]
+        stale = [incarnation(self.db.store, r) for r in (a, b)] != result.get("since")
+        if stale:
+            log.info("live map: %s-%s changed while aligned; result dropped", a, b)
+            return False
+        update_states(self.db.store, lambda states: states.__setitem__(key, result))
+        return True
 
     def _link(self, st: dict) -> None:
         """Register a new merge as a link (its co-visible keyframe pairs become overlaps),
@@ -185,9 +207,10 @@ class LiveMap:
             self._place_new_robots(states)
             return False
         a, b, overlaps = due[0]
-        states[pair_key(a, b)] = st = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
-        save_states(self.db.store, states)
-        self.place(states)
+        st = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
+        if not self._store_result(pair_key(a, b), st):
+            return True
+        self.place(load_states(self.db.store))
         if st["status"] == "merged" and "last_refusal" not in st:
             self._register(a, b, st["transform"])
         return True
@@ -244,6 +267,7 @@ class LiveMap:
         """Align A and B from their stored views near the verified overlaps; the pair's new
         state (a gated refusal of a merged pair keeps the merge)."""
         st = {"robot_a": a, "robot_b": b, "evidence": len(overlaps), "at": time.time()}
+        st["since"] = [incarnation(self.db.store, r) for r in (a, b)]  # who was aligned
         st["attempts"] = (before or {}).get("attempts", 0) + 1
         ranked = sorted(overlaps, key=lambda o: -o.inliers)
         k = self.params.first_views if before is None else self.params.max_views
@@ -271,7 +295,7 @@ class LiveMap:
             return st | fit | {"status": "merged", "transform": T.tolist()}
         log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
         if before is not None and before["status"] == "merged":
-            keep = {k: st[k] for k in ("evidence", "attempts", "budget")}
+            keep = {k: st[k] for k in ("evidence", "attempts", "budget", "since")}
             return before | keep | {"last_refusal": answer["reason"]}
         return st | fit | {"status": "refused"}
 
@@ -365,17 +389,3 @@ def _same_placement(old: dict, new: dict) -> bool:
     return all(
         np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
     )
-
-
-def load_states(store) -> dict:
-    raw = store.live_get("pairs")
-    return {} if raw is None else json.loads(raw)
-
-
-def save_states(store, states: dict) -> None:
-    store.live_put("pairs", json.dumps(states))
-
-
-def read_placement(store) -> dict:
-    raw = store.live_get("map")
-    return {} if raw is None else json.loads(raw)
