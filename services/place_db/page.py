@@ -47,6 +47,10 @@ td.n { text-align: right; }
 const $ = (id) => document.getElementById(id);
 let token = new URLSearchParams(location.hash.slice(1)).get("token")
   || sessionStorage.getItem("fleetmap-token") || "";
+if (location.hash) {  // the token leaves the address bar and the history once read
+  sessionStorage.setItem("fleetmap-token", token);
+  history.replaceState(null, "", location.pathname + location.search);
+}
 let shown = null;
 
 function cell(row, text, cls) {
@@ -123,3 +127,24 @@ setInterval(refresh, 2000);
 </script>
 </body></html>
 """
+
+
+def _csp(page: str) -> str:
+    """The page's Content-Security-Policy: its own inline scripts (by hash) and nothing
+    else runs; images from this service or the blobs the script makes; never framed."""
+    import base64
+    import hashlib
+    import re
+
+    hashes = [
+        "'sha256-" + base64.b64encode(hashlib.sha256(body.encode()).digest()).decode() + "'"
+        for body in re.findall(r"<script>(.*?)</script>", page, re.S)
+    ]
+    return (
+        f"default-src 'none'; script-src 'self' {' '.join(hashes)}; "
+        "style-src 'unsafe-inline'; img-src 'self' blob:; connect-src 'self'; "
+        "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+    )
+
+
+CSP = _csp(PAGE)
