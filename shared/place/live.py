@@ -30,6 +30,7 @@ import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.pairs import look_at, spread
+from fleetmap.place.live_rules import due_order, is_due, merged_edges, reference, same_placement
 from fleetmap.place.live_state import (
     incarnation,
     load_states,
@@ -50,6 +51,9 @@ class LiveParams:
     max_views: int = 12  # per robot and pair, as `fleetmap merge --max-views`
     first_views: int = 8  # a pair's first fit: 8x8 views, about half the time of 12x12
     retry_min_new: int = 1  # a refused pair: tried again after this many new overlaps
+    retry_factor: float = 1.25  # ... and once its overlaps grew by this factor
+    retry_backoff_s: float = 2.0  # ... and this long after its attempt, doubled per refusal
+    retry_backoff_max_s: float = 120.0
     refine_factor: float = 2.0  # a merged pair: aligned again once its overlaps doubled
     refine_min_new: int = 5  # ... and at least this many are new
     failure_backoff_s: float = 10.0  # after the aligner could not be reached
@@ -222,17 +226,21 @@ class LiveMap:
         verified overlaps; each with its cascade overlaps."""
         placed = set(read_placement(self.db.store).get("transforms", {}))
         now, due = time.monotonic(), []
-        quiet = self._quiet(now)
+        quiet, wall = self._quiet(now), time.time()
         for e in self.db.overlap_graph():
             a, b = e["robot_a"], e["robot_b"]
             if self._backoff.get(pair_key(a, b), 0.0) > now:
                 continue
             overlaps = [o for o in self.db.overlaps(a, b) if o.source == "cascade"]
             st = states.get(pair_key(a, b))
-            if overlaps and self._is_due(st, len(overlaps), a, b, quiet):
+            if not overlaps:
+                continue
+            waits = st is not None and st["status"] == "no_views"
+            changed = waits and self._view_counts(a, b) != tuple(st["views"])
+            if is_due(st, len(overlaps), self.params, quiet, changed, wall):
                 joins = (a in placed) != (b in placed) or not placed
-                due.append((not joins, -len(overlaps), a, b, overlaps))
-        return [(a, b, o) for *_, a, b, o in sorted(due, key=lambda d: d[:4])]
+                due.append((due_order(joins, st, len(overlaps), a, b), a, b, overlaps))
+        return [(a, b, o) for _, a, b, o in sorted(due, key=lambda d: d[0])]
 
     def _quiet(self, now: float) -> bool:
         """No keyframe arrived for `settle_s` and none waits for overlap detection: the
@@ -242,20 +250,6 @@ class LiveMap:
             self._kf_total, self._kf_changed = total, now
         self.quiet = now - self._kf_changed >= self.params.settle_s and self.db.pending() == 0
         return self.quiet
-
-    def _is_due(self, st: dict | None, n: int, a: str, b: str, quiet: bool = False) -> bool:
-        p = self.params
-        if st is None:
-            return True
-        if st["status"] == "merged":
-            if quiet and (n > st["evidence"] or st.get("budget", p.max_views) < p.max_views):
-                return True  # the robots went quiet: a last fit on every overlap and view
-            return n >= max(st["evidence"] * p.refine_factor, st["evidence"] + p.refine_min_new)
-        if st["status"] == "no_views":
-            return self._view_counts(a, b) != tuple(st["views"])
-        if quiet and st.get("budget", p.max_views) < p.max_views:
-            return True  # refused on the first, smaller fit: once more with every view
-        return n >= st["evidence"] + p.retry_min_new
 
     def _view_counts(self, a: str, b: str) -> tuple[int, int]:
         store = self.db.store
@@ -297,6 +291,7 @@ class LiveMap:
         if before is not None and before["status"] == "merged":
             keep = {k: st[k] for k in ("evidence", "attempts", "budget", "since")}
             return before | keep | {"last_refusal": answer["reason"]}
+        st["refusals"] = (before or {}).get("refusals", 0) + 1  # its back-off doubles
         return st | fit | {"status": "refused"}
 
     def _views(self, robot: str, seeds: list[int], max_views: int) -> list:
@@ -328,8 +323,9 @@ class LiveMap:
 
         names = robot_order(self.db)
         edges = merged_edges(states, set(names))
-        ref = reference(names, edges)
         old = read_placement(self.db.store)
+        counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
+        ref = reference(names, edges, counts, old.get("reference"))
         if ref is None:
             placed, optimised = {}, False
         else:
@@ -337,7 +333,7 @@ class LiveMap:
             placed, chain = spanning_placement(order, edges)
             placed, optimised = optimise_poses(placed, edges, ref, chain)
         new = {"reference": ref, "transforms": {r: T.tolist() for r, T in placed.items()}}
-        if not _same_placement(old, new):
+        if not same_placement(old, new):
             new |= {
                 "version": old.get("version", 0) + 1,
                 "updated_at": time.time(),
@@ -355,37 +351,3 @@ def robot_order(db, robots: list[dict] | None = None) -> list[str]:
     names = [r["robot_id"] for r in (db.robots() if robots is None else robots)]
     codes = {n: db.store.robot_code(n) for n in names}
     return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])
-
-
-def merged_edges(states: dict, names: set[str]) -> dict:
-    """(A, B) -> {"T_a_b", "inliers"} of every merged pair whose robots still exist."""
-    edges = {}
-    for st in states.values():
-        if st["status"] != "merged":
-            continue
-        a, b = st["robot_a"], st["robot_b"]
-        if a in names and b in names:
-            edges[(a, b)] = {"T_a_b": np.array(st["transform"]), "inliers": st["inliers"]}
-    return edges
-
-
-def reference(names: list[str], edges: dict) -> str | None:
-    """The first robot to arrive of the largest merged group (the first robot if none)."""
-    if not names:
-        return None
-    group = {n: {n} for n in names}
-    for a, b in edges:
-        joined = group[a] | group[b]
-        for n in joined:
-            group[n] = joined
-    return min(names, key=lambda n: (-len(group[n]), names.index(n)))
-
-
-def _same_placement(old: dict, new: dict) -> bool:
-    if old.get("reference") != new["reference"] or set(old.get("transforms", {})) != set(
-        new["transforms"]
-    ):
-        return False
-    return all(
-        np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
-    )
