@@ -10,10 +10,11 @@ transaction (`forget_robot`), so a robot id that comes back starts fresh.
 from __future__ import annotations
 
 import json
+import random
 import time
 from collections.abc import Callable
 
-CAS_TRIES = 20
+CAS_TRIES = 100
 
 
 def pair_key(a: str, b: str) -> str:
@@ -33,12 +34,13 @@ def read_placement(store) -> dict:
 def update_states(store, change: Callable[[dict], None]) -> dict:
     """Apply `change` (which edits the states in place) to the stored pair states as a
     compare-and-set, read again and retried if another writer came first. Returns them."""
-    for _ in range(CAS_TRIES):
+    for k in range(CAS_TRIES):
         raw = store.live_get("pairs")
         states = {} if raw is None else json.loads(raw)
         change(states)
         if store.live_cas("pairs", raw, json.dumps(states)):
             return states
+        time.sleep(random.uniform(0, 0.002 * (k + 1)))  # jitter: racing writers spread out
     raise RuntimeError("live map: the pair states kept changing under this writer")
 
 
