@@ -30,7 +30,14 @@ import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.pairs import look_at, spread
-from fleetmap.place.live_rules import due_order, is_due, merged_edges, reference, same_placement
+from fleetmap.place.live_rules import (
+    due_order,
+    is_due,
+    merged_edges,
+    reference,
+    same_picture,
+    same_placement,
+)
 from fleetmap.place.live_state import (
     incarnation,
     load_states,
@@ -72,12 +79,14 @@ class LiveMap:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.failures = 0
-        self._robots_placed = -1  # robots known at the last placement
+        self._robots_placed: tuple = ()  # robots known (and copiers) at the last placement
         self._noted: dict | None = None
         self._kf_total, self._kf_changed = -1, time.monotonic()
         self.quiet = False
         self._linker = ThreadPoolExecutor(1, thread_name_prefix="live-link")
         self._leading = True  # False once the store's lock was lost: nothing is stored
+        self._same: dict[tuple[int, int], bool] = {}  # keyframe pair -> one picture twice
+        self.copiers: dict[str, str] = {}  # robot -> why its keyframes are no evidence
 
     # --- the worker thread --------------------------------------------------------------
 
@@ -197,8 +206,8 @@ class LiveMap:
             self._noted = work
 
     def _place_new_robots(self, states: dict) -> None:
-        robots = self.db.store.robot_count()
-        if robots != self._robots_placed:  # a new robot: the reference may change
+        robots = (self.db.store.robot_count(), sorted(self.copiers))
+        if robots != self._robots_placed:  # a new robot or copier: the reference may change
             self.place(states)
             self._robots_placed = robots
 
@@ -227,20 +236,43 @@ class LiveMap:
         placed = set(read_placement(self.db.store).get("transforms", {}))
         now, due = time.monotonic(), []
         quiet, wall = self._quiet(now), time.time()
+        copiers: dict[str, str] = {}
         for e in self.db.overlap_graph():
             a, b = e["robot_a"], e["robot_b"]
             if self._backoff.get(pair_key(a, b), 0.0) > now:
                 continue
-            overlaps = [o for o in self.db.overlaps(a, b) if o.source == "cascade"]
+            overlaps = self._evidence(a, b, copiers)
             st = states.get(pair_key(a, b))
-            if not overlaps:
+            if not overlaps or a in copiers or b in copiers:
                 continue
             waits = st is not None and st["status"] == "no_views"
             changed = waits and self._view_counts(a, b) != tuple(st["views"])
             if is_due(st, len(overlaps), self.params, quiet, changed, wall):
                 joins = (a in placed) != (b in placed) or not placed
                 due.append((due_order(joins, st, len(overlaps), a, b), a, b, overlaps))
+        self.copiers = copiers
+        due = [d for d in due if d[1] not in copiers and d[2] not in copiers]
         return [(a, b, o) for _, a, b, o in sorted(due, key=lambda d: d[0])]
+
+    def _evidence(self, a: str, b: str, copiers: dict) -> list:
+        """The pair's cascade overlaps that are a second look at a place, not one picture
+        posted by both; the robot that posted the copy later is noted in `copiers`."""
+        out = []
+        for o in self.db.overlaps(a, b):
+            if o.source != "cascade":
+                continue
+            key = (o.kf_a, o.kf_b)
+            if key not in self._same:
+                fa, fb = self.db.load_frame(o.kf_a), self.db.load_frame(o.kf_b)
+                self._same[key] = same_picture(fa, fb)
+            if not self._same[key]:
+                out.append(o)
+                continue
+            copier, other = (b, a) if o.kf_b > o.kf_a else (a, b)
+            copiers[copier] = (
+                f"its keyframes repeat {other}'s pictures: they are no evidence of where it is"
+            )
+        return out
 
     def _quiet(self, now: float) -> bool:
         """No keyframe arrived for `settle_s` and none waits for overlap detection: the
@@ -319,10 +351,12 @@ class LiveMap:
     def place(self, states: dict) -> dict:
         """Place every robot reachable from the reference through merged pairs; store the
         placement, its version raised only when it changed."""
+        from fleetmap.cycles import disagreeing
         from fleetmap.placement import optimise_poses, spanning_placement
 
         names = robot_order(self.db)
-        edges = merged_edges(states, set(names))
+        flagged = {r: why for r, why in self.copiers.items() if r in names}
+        edges = merged_edges(states, set(names) - set(flagged))
         old = read_placement(self.db.store)
         counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
         ref = reference(names, edges, counts, old.get("reference"))
@@ -331,8 +365,14 @@ class LiveMap:
         else:
             order = [ref] + [n for n in names if n != ref]
             placed, chain = spanning_placement(order, edges)
+            bad = disagreeing(placed, chain, edges)
+            if bad:  # no robot placed through fits that disagree
+                flagged |= bad
+                edges = {k: e for k, e in edges.items() if not set(k) & set(bad)}
+                placed, chain = spanning_placement(order, edges)
             placed, optimised = optimise_poses(placed, edges, ref, chain)
         new = {"reference": ref, "transforms": {r: T.tolist() for r, T in placed.items()}}
+        new["flagged"] = flagged
         if not same_placement(old, new):
             new |= {
                 "version": old.get("version", 0) + 1,

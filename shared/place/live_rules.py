@@ -84,6 +84,26 @@ def same_placement(old: dict, new: dict) -> bool:
         new["transforms"]
     ):
         return False
+    if old.get("flagged", {}) != new.get("flagged", {}):
+        return False
     return all(
         np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
     )
+
+
+def same_picture(fa, fb, tol_px: float = 0.5, share: float = 0.9) -> bool:
+    """Whether two frames (`fleetmap.frame.Frame`) are one picture posted twice: of the
+    same size, with `share` of the features of each at the same pixel (within `tol_px`).
+    Two cameras, or one camera twice, never put 90% of their MSER regions on the same
+    pixels unless the picture is the same; such a keyframe is no second look at a place."""
+    from scipy.spatial import cKDTree
+
+    if (fa.width, fa.height) != (fb.width, fb.height) or min(
+        len(fa.keypoints), len(fb.keypoints)
+    ) < 20:
+        return False
+    for x, y in ((fa.keypoints, fb.keypoints), (fb.keypoints, fa.keypoints)):
+        d, _ = cKDTree(y).query(x, distance_upper_bound=tol_px)
+        if np.mean(np.isfinite(d)) < share:
+            return False
+    return True

@@ -41,6 +41,7 @@ def map_document(db) -> dict:
     states = load_states(db.store)
     graph = db.overlap_graph()
     placed = m.get("transforms", {})
+    flagged = m.get("flagged", {})  # robots refused: copies, or fits that disagree
     counts = {r["robot_id"]: r["keyframes"] for r in robots}
     fleet = []
     for r in names:
@@ -52,7 +53,10 @@ def map_document(db) -> dict:
         "reference": m.get("reference"),
         "transforms": {r: T for r, T in placed.items() if r in counts},
         "unmerged": [
-            {"robot": f["robot"], "reason": unmerged_reason(f, states, graph, placed)}
+            {
+                "robot": f["robot"],
+                "reason": flagged.get(f["robot"]) or unmerged_reason(f, states, graph, placed),
+            }
             for f in fleet
             if f["state"] == "unmerged"
         ],

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from fleetmap.align import DEFAULT_ALIGN, align_request
 from fleetmap.dataset import read_recording
 from fleetmap.extract import FrameExtractor, keyframe_indices
-from fleetmap.frame import encode
+from fleetmap.frame import decode, encode
 from fleetmap.geometry import transform_error
 from fleetmap.pairs import load_view
 from fleetmap.place.live import LiveMap, LiveParams
@@ -99,3 +99,33 @@ def test_a_deleted_robot_comes_back_fresh(settings, vocabulary):
         assert dt < 0.05 and dr < 2.0, (dt, dr)
         assert back["version"] > gone["version"]
         assert [(k["robot_a"], k["robot_b"]) for k in app.state.db.links()] == [("alpha", "bravo")]
+
+
+def test_a_robot_posting_copies_moves_no_one(settings, vocabulary):
+    """Issue 26.2: robot evil posts a copy of alpha's keyframe and view with alpha's pose,
+    then bravo's with a pose 90 degrees and 5 m off. Its copies are no evidence: evil is
+    not placed (the reason on /map), no fit of it places bravo, and bravo is placed by
+    its own fit with alpha within 5 cm / 2 degrees of the truth."""
+    T_ab = np.loadtxt(EXAMPLE / "T_alpha_bravo.txt")
+    app, calls = create_app(settings), []
+    with TestClient(app) as client:
+        for robot in ("alpha", "bravo"):
+            for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
+                post(client, robot, frame, view)
+        copies = robot_keyframes(vocabulary, "alpha", np.eye(4))
+        copies += robot_keyframes(vocabulary, "bravo", moved(90, 5.0))
+        for k, (frame, view) in enumerate(copies):
+            f = decode(frame)
+            f.robot_id, f.stamp = "evil", 5000.0 + k
+            post(client, "evil", encode(f), view)
+        assert client.get("/overlaps", params={"wait": 60}).json()["graph"]
+        live = LiveMap(app.state.db, real_align(calls), LiveParams(settle_s=3600))
+        for _ in range(6):
+            if not live.tick():
+                break
+        m = client.get("/map").json()
+        assert "evil" not in m["transforms"], m["transforms"]
+        why = {u["robot"]: u["reason"] for u in m["unmerged"]}
+        assert "repeat" in why["evil"] and "pictures" in why["evil"], why
+        dt, dr = transform_error(np.array(m["transforms"]["bravo"]), T_ab)
+        assert dt < 0.05 and dr < 2.0, (dt, dr)
