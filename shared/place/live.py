@@ -359,7 +359,7 @@ class LiveMap:
         edges = merged_edges(states, set(names) - set(flagged))
         old = read_placement(self.db.store)
         counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
-        ref = reference(names, edges, counts, old.get("reference"))
+        ref = reference(names, edges, counts)
         if ref is None:
             placed, optimised = {}, False
         else:

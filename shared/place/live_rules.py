@@ -44,13 +44,10 @@ def due_order(joins: bool, st: dict | None, n: int, a: str, b: str) -> tuple:
     return (not joins, 0.0 if st is None else st.get("at", 0.0), -n, a, b)
 
 
-def reference(
-    names: list[str], edges: dict, counts: dict | None = None, current: str | None = None
-) -> str | None:
+def reference(names: list[str], edges: dict, counts: dict | None = None) -> str | None:
     """The reference robot: of the largest merged group, the robot with the most
-    keyframes (ties by name); the current reference is kept while it is in that group
-    with at least half the keyframes of the leader (the map frame does not flip while
-    robots stream). Arriving first wins nothing."""
+    keyframes, ties by name. Arriving first wins nothing, and the same stored state gives
+    the same reference on every replica and after a restart."""
     if not names:
         return None
     counts = counts or {}
@@ -60,11 +57,7 @@ def reference(
         for n in joined:
             group[n] = joined
     size = max(len(g) for g in group.values())
-    best = min((n for n in names if len(group[n]) == size), key=lambda n: (-counts.get(n, 0), n))
-    if current in group and len(group[current]) == size and best in group[current]:
-        if 2 * counts.get(current, 0) >= counts.get(best, 0):
-            return current
-    return best
+    return min((n for n in names if len(group[n]) == size), key=lambda n: (-counts.get(n, 0), n))
 
 
 def merged_edges(states: dict, names: set[str]) -> dict:
