@@ -31,11 +31,12 @@ import numpy as np
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.pairs import look_at, spread
 from fleetmap.place.live_rules import (
+    copier_robots,
     due_order,
+    evidence,
     is_due,
     merged_edges,
     reference,
-    same_picture,
     same_placement,
 )
 from fleetmap.place.live_state import (
@@ -236,43 +237,24 @@ class LiveMap:
         placed = set(read_placement(self.db.store).get("transforms", {}))
         now, due = time.monotonic(), []
         quiet, wall = self._quiet(now), time.time()
-        copiers: dict[str, str] = {}
+        copied: dict[str, dict] = {}  # robot -> {its keyframe: the robot it repeats}
         for e in self.db.overlap_graph():
             a, b = e["robot_a"], e["robot_b"]
             if self._backoff.get(pair_key(a, b), 0.0) > now:
                 continue
-            overlaps = self._evidence(a, b, copiers)
+            overlaps = evidence(self.db, a, b, self._same, copied)
             st = states.get(pair_key(a, b))
-            if not overlaps or a in copiers or b in copiers:
+            if not overlaps:
                 continue
             waits = st is not None and st["status"] == "no_views"
             changed = waits and self._view_counts(a, b) != tuple(st["views"])
             if is_due(st, len(overlaps), self.params, quiet, changed, wall):
                 joins = (a in placed) != (b in placed) or not placed
                 due.append((due_order(joins, st, len(overlaps), a, b), a, b, overlaps))
-        self.copiers = copiers
+        counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
+        self.copiers = copiers = copier_robots(copied, counts)
         due = [d for d in due if d[1] not in copiers and d[2] not in copiers]
         return [(a, b, o) for _, a, b, o in sorted(due, key=lambda d: d[0])]
-
-    def _evidence(self, a: str, b: str, copiers: dict) -> list:
-        """The pair's cascade overlaps that are a second look at a place, not one picture
-        posted by both; the robot that posted the copy later is noted in `copiers`."""
-        out = []
-        for o in self.db.overlaps(a, b):
-            if o.source != "cascade":
-                continue
-            key = (o.kf_a, o.kf_b)
-            if key not in self._same:
-                fa, fb = self.db.load_frame(o.kf_a), self.db.load_frame(o.kf_b)
-                self._same[key] = same_picture(fa, fb)
-            if not self._same[key]:
-                out.append(o)
-                continue
-            copier, other = (b, a) if o.kf_b > o.kf_a else (a, b)
-            copiers[copier] = (
-                f"its keyframes repeat {other}'s pictures: they are no evidence of where it is"
-            )
-        return out
 
     def _quiet(self, now: float) -> bool:
         """No keyframe arrived for `settle_s` and none waits for overlap detection: the

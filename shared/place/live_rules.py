@@ -100,3 +100,34 @@ def same_picture(fa, fb, tol_px: float = 0.5, share: float = 0.9) -> bool:
         if np.mean(np.isfinite(d)) < share:
             return False
     return True
+
+
+def evidence(db, a: str, b: str, same: dict, copied: dict) -> list:
+    """The pair's cascade overlaps that are a second look at a place, not one picture
+    posted by both (`same_picture`, cached in `same` per keyframe pair); each copy (the
+    later keyframe) is noted in `copied`: robot -> {keyframe: the robot it repeats}."""
+    out = []
+    for o in db.overlaps(a, b):
+        if o.source != "cascade":
+            continue
+        key = (o.kf_a, o.kf_b)
+        if key not in same:
+            same[key] = same_picture(db.load_frame(o.kf_a), db.load_frame(o.kf_b))
+        if not same[key]:
+            out.append(o)
+            continue
+        copier, kf, other = (b, o.kf_b, a) if o.kf_b > o.kf_a else (a, o.kf_a, b)
+        copied.setdefault(copier, {})[kf] = other
+    return out
+
+
+def copier_robots(copied: dict, counts: dict) -> dict[str, str]:
+    """{robot: reason} of robots at least half of whose keyframes repeat other robots'
+    pictures: they bring no observation of their own and are not placed (fewer copies are
+    only left out of the evidence)."""
+    return {
+        r: f"{len(kfs)} of its {counts[r]} keyframes repeat the pictures of "
+        f"{', '.join(sorted(set(kfs.values())))}: no evidence of where it is"
+        for r, kfs in copied.items()
+        if r in counts and 2 * len(kfs) >= counts[r]
+    }
