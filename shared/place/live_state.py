@@ -55,8 +55,10 @@ def forget_robot(pairs_raw: str | None, map_raw: str | None, name: str) -> tuple
     m = {} if map_raw is None else json.loads(map_raw)
     placed = m.get("transforms", {})
     ref = m.get("reference")
-    if name not in placed and ref != name:
+    flagged = m.get("flagged", {})
+    if name not in placed and ref != name and name not in flagged:
         return new_pairs, None
+    m["flagged"] = {r: why for r, why in flagged.items() if r != name}
     reach = _reachable(ref, kept) if ref != name else set()
     m["transforms"] = {r: T for r, T in placed.items() if r in reach}
     m["edges"] = [e for e in m.get("edges", []) if e[0] in reach and e[1] in reach]
