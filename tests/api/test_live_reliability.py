@@ -129,3 +129,27 @@ def test_a_robot_posting_copies_moves_no_one(settings, vocabulary):
         assert "repeat" in why["evil"] and "pictures" in why["evil"], why
         dt, dr = transform_error(np.array(m["transforms"]["bravo"]), T_ab)
         assert dt < 0.05 and dr < 2.0, (dt, dr)
+
+
+def test_a_robot_flooding_copies_starves_no_pair(settings, vocabulary):
+    """Issue 26.6: a robot re-posting copies of alpha's keyframe with random poses kept its
+    pair due and first in line; alpha-bravo was never tried. Now alpha-bravo is aligned at
+    the first step and the flooding robot never reaches the aligner."""
+    app, calls = create_app(settings), []
+    with TestClient(app) as client:
+        for robot in ("alpha", "bravo"):
+            for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
+                post(client, robot, frame, view)
+        copy, view = robot_keyframes(vocabulary, "alpha", np.eye(4))[0]
+        live = LiveMap(app.state.db, real_align(calls), LiveParams(settle_s=3600))
+        for k in range(4):  # a few more copies before every step of the worker
+            for j in range(3):
+                f = decode(copy)
+                f.robot_id, f.stamp = "flood", 100.0 * k + j
+                f.T_map_cam = moved(37.0 * (3 * k + j), float(k + j)) @ f.T_map_cam
+                post(client, "flood", encode(f), view)
+            client.get("/overlaps", params={"wait": 60})
+            live.tick()
+        pairs = {(p["robot_a"], p["robot_b"]) for p in client.get("/map").json()["pairs"]}
+        assert pairs == {("alpha", "bravo")}, pairs
+        assert len(calls) == 1 and "bravo" in client.get("/map").json()["transforms"]
