@@ -134,7 +134,8 @@ def main() -> None:
             if live["placed_after_s"] is None
             else round(live["placed_after_s"], 1),
             "settled_after_last_kf_s": round(live["settled_after_s"], 1),
-            "live_cm": errors(m["transforms"], frames, ref, work),
+            "reference": m["reference"],  # the live map's own (most keyframes)
+            "live_cm": errors(m["transforms"], frames, m["reference"], work),
             "unmerged": m["unmerged"],
             "alignments": sum(p["attempts"] for p in m["pairs"]),
         }

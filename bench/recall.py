@@ -205,7 +205,7 @@ def table(rows: list[dict]) -> str:
         if not rs:
             continue
         v = [verdict(r) for r in rs]
-        errs = [r["error_cm"] for r, x in zip(rs, v, strict=True) if x == "right"]
+        errs = [r["error_cm"] for r, x in zip(rs, v, strict=True) if x == "right" and r["merged"]]
         rec = [r["recipe"] for r in rs if r["recipe"]]
         rr = sum(np.mean([e <= RIGHT_CM for e, _ in x]) for x in rec)
         rw = sum(np.mean([e > WRONG_CM for e, _ in x]) for x in rec)
@@ -231,7 +231,11 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", nargs="*", help="recordings (and/or 'cross') to run")
     ap.add_argument("--json", type=Path, help="write every row here")
+    ap.add_argument("--table", type=Path, help="only print the table of rows written earlier")
     args = ap.parse_args()
+    if args.table:
+        print(table(json.loads(args.table.read_text())))
+        return
     rng = np.random.default_rng(args.seed)
     specs = timelines(args.data)
     if not specs:

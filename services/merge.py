@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fleetmap.client import AlignerClient, PlaceDBClient
+from fleetmap.cycles import disagreeing
 from fleetmap.dataset import Recording
 from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
@@ -86,8 +87,7 @@ def run_merge(
         with timed(timing, "align"):
             edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
         with timed(timing, "outputs"):
-            placed, chain = spanning_placement(ids, edges)
-            placed, optimised = optimise_poses(placed, edges, ids[0], chain)
+            placed, chain, optimised, edges = place_fleet(ids, edges)
             drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
@@ -106,6 +106,20 @@ def run_merge(
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+def place_fleet(ids: list[str], edges: dict) -> tuple:
+    """(T_ref_robot, chains, optimised, edges used): the strongest chain of fits, no robot
+    placed through a cycle whose fits disagree (`fleetmap.cycles`), the pose graph."""
+    placed, chain = spanning_placement(ids, edges)
+    bad = disagreeing(placed, chain, edges)
+    for robot, why in bad.items():
+        log.warning("%s not placed: %s", robot, why)
+    if bad:
+        edges = {k: e for k, e in edges.items() if not set(k) & set(bad)}
+        placed, chain = spanning_placement(ids, edges)
+    placed, optimised = optimise_poses(placed, edges, ids[0], chain)
+    return placed, chain, optimised, edges
 
 
 def checked_vocabulary(client: PlaceDBClient, path):

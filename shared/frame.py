@@ -41,13 +41,13 @@ MAX_GIST_DIM = 4096
 MAX_WORDS = 1 << 20
 MAX_HEADER_BYTES = 16 * 1024
 MAX_FRAME_BYTES = 4 * 1024 * 1024
-ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+ROBOT_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole id: fullmatch
 _PREFIX = struct.Struct("<4sHHI")
 
 
 def check_robot_id(robot_id: str) -> str:
     """Robot ids: 1-64 characters of letters, digits, '_', '.', '-' (no leading symbol)."""
-    if not isinstance(robot_id, str) or not ROBOT_ID_RE.match(robot_id):
+    if not isinstance(robot_id, str) or not ROBOT_ID_RE.fullmatch(robot_id):
         raise BadInput(f"Robot id must match {ROBOT_ID_RE.pattern}, got {robot_id!r}")
     return robot_id
 

@@ -20,6 +20,16 @@ from fleetmap.errors import BadInput, PayloadTooLarge
 JPEG_QUALITY = 95  # colour: SIFT on q95 JPEG finds the same features as on PNG, 1/5 the size
 PARTS = ("rgb", "depth")
 MAX_VIEW_PIXELS = 4096 * 4096  # per image
+# A JPEG's decoding cost grows with its scans: one for baseline, 10 in libjpeg's standard
+# progressive script (6 for grey). A file repeating a scan passes every header check and
+# makes the decoder pass over every coefficient once per scan (a scan bomb).
+MAX_JPEG_SCANS = 100  # ten times the standard progressive script
+JPEG_SCAN_WORK = 10 * MAX_VIEW_PIXELS  # scans x pixels: 10 scans at the pixel limit
+# Plausible intrinsics for a view of width w, height h: the focal length between 0.1 w and
+# 10 w (a horizontal field of view from 157 to 5.7 degrees), fy/fx within [0.5, 2], the
+# principal point in the central half of the image (real cameras: within a few percent of
+# the centre; 640x480 intrinsics on a 1280x960 view put it at a quarter).
+FOCAL_RANGE = (0.1, 10.0)
 MEDIA = {b"\xff\xd8": "image/jpeg", b"\x89P": "image/png"}
 
 
@@ -53,11 +63,48 @@ def image_size(data: bytes, name: str) -> tuple[int, int]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(io.BytesIO(data)) as im:
-                return im.size
+                size = im.size
     except Image.DecompressionBombError as exc:
         raise PayloadTooLarge(f"{name}: {exc}") from exc
     except (OSError, ValueError, SyntaxError) as exc:
         raise BadInput(f"{name}: not an image OpenCV or Pillow can read ({exc})") from exc
+    if media_type(data) == "image/jpeg":
+        check_jpeg_scans(data, name, size[0] * size[1])
+    return size
+
+
+def jpeg_scans(data: bytes) -> int:
+    """The start-of-scan markers (FF DA) in a JPEG's bytes, nothing decoded. Entropy-coded
+    data stuffs every FF byte with 00 (restart markers are FF D0-D7), so FF DA appears only
+    as a marker, or by chance inside a metadata segment (counted too: a bound, not a parse)."""
+    return bytes(data).count(b"\xff\xda")
+
+
+def check_jpeg_scans(data: bytes, name: str, pixels: int) -> None:
+    """PayloadTooLarge for a JPEG with more scans than any encoder writes (MAX_JPEG_SCANS)
+    or whose scans x pixels exceed the decoding budget (JPEG_SCAN_WORK)."""
+    n = jpeg_scans(data)
+    limit = min(MAX_JPEG_SCANS, max(1, JPEG_SCAN_WORK // max(pixels, 1)))
+    if n > limit:
+        raise PayloadTooLarge(
+            f"{name}: a JPEG of {n} scans; at most {limit} are decoded at this size "
+            f"(baseline has 1, a standard progressive JPEG 10)"
+        )
+
+
+def check_intrinsics(intrinsics, width: int, height: int, name: str) -> None:
+    """BadInput unless the intrinsics are plausible for a view of width x height pixels
+    (FOCAL_RANGE, fy/fx, principal point in the central half)."""
+    k, lo, hi = intrinsics, FOCAL_RANGE[0] * width, FOCAL_RANGE[1] * width
+    why = None
+    if not (lo <= k.fx <= hi):
+        why = f"fx {k.fx:g} outside [{lo:g}, {hi:g}] ({FOCAL_RANGE} x the width)"
+    elif not (0.5 <= k.fy / k.fx <= 2.0):
+        why = f"fy / fx = {k.fy / k.fx:g}, expected within [0.5, 2]"
+    elif abs(k.cx - width / 2) > width / 4 or abs(k.cy - height / 2) > height / 4:
+        why = f"principal point ({k.cx:g}, {k.cy:g}) outside the image's central half"
+    if why:
+        raise BadInput(f"{name}: intrinsics implausible for a {width}x{height} view: {why}")
 
 
 def decode_image(data: bytes, name: str, depth: bool) -> np.ndarray:
@@ -87,6 +134,7 @@ def check_view(frame, parts: dict[str, bytes], max_pixels: int) -> tuple[bytes, 
             raise PayloadTooLarge(f"{p}: {w}x{h} exceeds the pixel limit of {max_pixels}")
         if (w, h) != (frame.width, frame.height):
             raise BadInput(f"{p}: {w}x{h}, but the frame is {frame.width}x{frame.height}")
+    check_intrinsics(frame.intrinsics, frame.width, frame.height, "view")
     decode_image(parts["rgb"], "rgb", False)
     if not decode_image(parts["depth"], "depth", True).any():
         raise BadInput("depth: the image has no valid reading")

@@ -16,7 +16,7 @@ from fleetmap.correspondences import RGBDView
 from fleetmap.errors import BadInput, PayloadTooLarge, UnknownKeyframe
 from fleetmap.services.aligner import schemas as s
 from fleetmap.services.common import ERROR_RESPONSES, any_token, read_body
-from fleetmap.view import decode_image, image_size
+from fleetmap.view import check_intrinsics, decode_image, image_size
 from fleetmap.wire import ALIGN_META, view_part
 
 router = APIRouter(responses=ERROR_RESPONSES)
@@ -37,9 +37,9 @@ def _view(files: dict[str, bytes], name: str, vm: s.ViewMeta) -> RGBDView:
     rgb = decode_image(files[rgb_part], rgb_part, False)
     depth = decode_image(files[depth_part], depth_part, True)
     try:
-        return RGBDView(
-            rgb, depth, Intrinsics(**vm.intrinsics.model_dump()), np.array(vm.T_map_cam), vm.stamp
-        )
+        intrinsics = Intrinsics(**vm.intrinsics.model_dump())
+        check_intrinsics(intrinsics, rgb.shape[1], rgb.shape[0], "intrinsics")
+        return RGBDView(rgb, depth, intrinsics, np.array(vm.T_map_cam), vm.stamp)
     except BadInput as exc:
         raise BadInput(f"view {name}: {exc}") from exc
 

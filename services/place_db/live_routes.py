@@ -3,6 +3,7 @@ stored views, and the operator page."""
 
 from __future__ import annotations
 
+import asyncio
 import base64
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
@@ -13,11 +14,18 @@ from fleetmap.mapcloud import ply_bytes
 from fleetmap.place.live_view import BASE_VOXEL_M, map_document
 from fleetmap.services.common import ERROR_RESPONSES, operator_only
 from fleetmap.services.place_db import schemas as s
-from fleetmap.services.place_db.page import PAGE
+from fleetmap.services.place_db.page import CSP, PAGE
 from fleetmap.view import media_type
 
 router = APIRouter(responses=ERROR_RESPONSES)
 KF_ID = Path(ge=1, le=2**63 - 1)
+
+
+async def run_in_map_pool(request: Request, fn, *args):
+    """The cloud, picture and trajectories built on their own threads (`app.state.map_pool`,
+    two): however many wait, the other routes and /healthz keep the server's thread pool."""
+    loop = asyncio.get_running_loop()
+    return await loop.run_in_executor(request.app.state.map_pool, fn, *args)
 
 
 @router.get(
@@ -52,7 +60,7 @@ async def map_cloud(
         m = map_document(app.db)
         return ply_bytes(*app.renderer.cloud(m, voxel))
 
-    body = await run_in_threadpool(build)
+    body = await run_in_map_pool(request, build)
     return Response(body, media_type="application/octet-stream")
 
 
@@ -69,7 +77,7 @@ async def map_overview(request: Request) -> Response:
         app = request.app.state
         return app.renderer.overview(map_document(app.db))
 
-    return Response(await run_in_threadpool(build), media_type="image/png")
+    return Response(await run_in_map_pool(request, build), media_type="image/png")
 
 
 @router.get(
@@ -85,7 +93,7 @@ async def map_trajectories(request: Request) -> dict:
         app = request.app.state
         return app.renderer.trajectories(map_document(app.db))
 
-    return await run_in_threadpool(build)
+    return await run_in_map_pool(request, build)
 
 
 @router.get(
@@ -128,4 +136,4 @@ def keyframe_view_image(request: Request, part: s.ViewPart, kf_id: int = KF_ID) 
 def operator_page() -> HTMLResponse:
     """The operator page: a shell without data; its script reads the map with the token
     given in the address (#token=...) or typed in, sent as a bearer header."""
-    return HTMLResponse(PAGE, headers={"cache-control": "no-store"})
+    return HTMLResponse(PAGE, headers={"cache-control": "no-store", "content-security-policy": CSP})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
@@ -71,11 +72,15 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
         if announce:
             log.warning("place database: %s", common.auth_summary(settings))
         app.state.renderer = MapRenderer(app.state.db)
+        app.state.map_pool = ThreadPoolExecutor(2, thread_name_prefix="map-routes")
+        app.state.health_pool = ThreadPoolExecutor(1, thread_name_prefix="healthz")
         app.state.live = start_live_map(app.state.db, settings)
         yield
         if app.state.live is not None:
             app.state.live.stop()
             app.state.live.client.close()
+        for pool in (app.state.map_pool, app.state.health_pool):
+            pool.shutdown(wait=False, cancel_futures=True)
         app.state.db.close()
 
     app = FastAPI(

@@ -57,9 +57,15 @@ drag: turn, right drag: pan, wheel: zoom; <a href="#view=3d">3D only</a></div></
 const $ = (id) => document.getElementById(id);
 let token = new URLSearchParams(location.hash.slice(1)).get("token")
   || sessionStorage.getItem("fleetmap-token") || "";
-if (token) sessionStorage.setItem("fleetmap-token", token);  // kept across #view=3d
+const hashArgs = new URLSearchParams(location.hash.slice(1));
+if (hashArgs.has("token")) {  // the token leaves the address bar and the history once read
+  sessionStorage.setItem("fleetmap-token", token);  // kept across #view=3d
+  hashArgs.delete("token");
+  const rest = hashArgs.toString();
+  history.replaceState(null, "", location.pathname + location.search + (rest ? "#" + rest : ""));
+}
 let shown = null;
-if (new URLSearchParams(location.hash.slice(1)).get("view") === "3d") {
+if (hashArgs.get("view") === "3d") {
   document.body.classList.add("only3d");
 }
 window.addEventListener("hashchange", () => location.reload());
@@ -141,3 +147,24 @@ setInterval(refresh, 2000);
 <script type="module" src="/static/map3d/map3d.bundle.js"></script>
 </body></html>
 """
+
+
+def _csp(page: str) -> str:
+    """The page's Content-Security-Policy: its own inline scripts (by hash) and nothing
+    else runs; images from this service or the blobs the script makes; never framed."""
+    import base64
+    import hashlib
+    import re
+
+    hashes = [
+        "'sha256-" + base64.b64encode(hashlib.sha256(body.encode()).digest()).decode() + "'"
+        for body in re.findall(r"<script>(.*?)</script>", page, re.S)
+    ]
+    return (
+        f"default-src 'none'; script-src 'self' {' '.join(hashes)}; "
+        "style-src 'unsafe-inline'; img-src 'self' blob:; connect-src 'self'; "
+        "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+    )
+
+
+CSP = _csp(PAGE)

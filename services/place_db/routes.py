@@ -68,8 +68,14 @@ def _db(request: Request) -> PlaceDB:
 
 
 @router.get("/healthz", response_model=s.Health, response_model_exclude_none=True)
-def healthz(request: Request) -> s.Health:
-    """Liveness; with a token (or in an open deployment) the database and index state."""
+async def healthz(request: Request) -> s.Health:
+    """Liveness; with a token (or in an open deployment) the database and index state (on
+    a thread of its own: busy map routes never make it wait)."""
+    loop = asyncio.get_running_loop()
+    return await loop.run_in_executor(request.app.state.health_pool, _health, request)
+
+
+def _health(request: Request) -> s.Health:
     db = _db(request)
     ok = db.ping()
     try:

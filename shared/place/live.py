@@ -30,6 +30,22 @@ import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.pairs import look_at, spread
+from fleetmap.place.live_rules import (
+    copier_robots,
+    due_order,
+    evidence,
+    is_due,
+    merged_edges,
+    reference,
+    same_placement,
+)
+from fleetmap.place.live_state import (
+    incarnation,
+    load_states,
+    pair_key,
+    read_placement,
+    update_states,
+)
 from fleetmap.view import stored_view
 
 log = logging.getLogger(__name__)
@@ -43,15 +59,14 @@ class LiveParams:
     max_views: int = 12  # per robot and pair, as `fleetmap merge --max-views`
     first_views: int = 8  # a pair's first fit: 8x8 views, about half the time of 12x12
     retry_min_new: int = 1  # a refused pair: tried again after this many new overlaps
+    retry_factor: float = 1.25  # ... and once its overlaps grew by this factor
+    retry_backoff_s: float = 2.0  # ... and this long after its attempt, doubled per refusal
+    retry_backoff_max_s: float = 120.0
     refine_factor: float = 2.0  # a merged pair: aligned again once its overlaps doubled
     refine_min_new: int = 5  # ... and at least this many are new
     failure_backoff_s: float = 10.0  # after the aligner could not be reached
     parallel: int = 2  # pairs aligned at once (the aligner serves two requests at a time)
     settle_s: float = 5.0  # no keyframe for this long: merged pairs get a last fit
-
-
-def pair_key(a: str, b: str) -> str:
-    return "|".join(sorted((a, b)))
 
 
 class LiveMap:
@@ -65,11 +80,14 @@ class LiveMap:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.failures = 0
-        self._robots_placed = -1  # robots known at the last placement
+        self._robots_placed: tuple = ()  # robots known (and copiers) at the last placement
         self._noted: dict | None = None
         self._kf_total, self._kf_changed = -1, time.monotonic()
         self.quiet = False
         self._linker = ThreadPoolExecutor(1, thread_name_prefix="live-link")
+        self._leading = True  # False once the store's lock was lost: nothing is stored
+        self._same: dict[tuple[int, int], bool] = {}  # keyframe pair -> one picture twice
+        self.copiers: dict[str, str] = {}  # robot -> why its keyframes are no evidence
 
     # --- the worker thread --------------------------------------------------------------
 
@@ -89,8 +107,8 @@ class LiveMap:
         exclusive = getattr(self.db.store, "exclusive", None)
         while not self._stop.is_set():
             try:
-                with exclusive("live map") if exclusive else contextlib.nullcontext():
-                    self._lead()
+                with exclusive("live map") if exclusive else contextlib.nullcontext() as held:
+                    self._lead(held)
             except Conflict:
                 pass  # another replica is merging
             except Exception:  # a store or aligner hiccup must not end the worker
@@ -98,12 +116,19 @@ class LiveMap:
                 log.exception("live map: merge worker failed; starting again")
             self._stop.wait(self.params.poll_s)
 
-    def _lead(self) -> None:
+    def _lead(self, held: Callable[[], bool] | None = None) -> None:
         """Keep up to `parallel` pairs aligning at once (the aligner takes two requests
-        at a time, one per core); store each result and place the fleet as it comes."""
+        at a time, one per core); store each result and place the fleet as it comes.
+        Stops at once when `held()` says the store's lock was lost (another replica may
+        lead now): results still aligning are then dropped, never stored."""
         flying: dict[str, Future] = {}
+        self._leading = True
         with ThreadPoolExecutor(self.params.parallel, thread_name_prefix="live-align") as pool:
             while not self._stop.is_set():
+                if held is not None and not held():
+                    log.warning("live map: the merge lock was lost; no longer leading")
+                    self._leading = False
+                    return
                 for key in [k for k, f in flying.items() if f.done()]:
                     self._finish(key, flying.pop(key))
                 states = load_states(self.db.store)
@@ -143,11 +168,22 @@ class LiveMap:
             self.failures += 1
             log.warning("live map: %s", exc)
             return
-        states = load_states(self.db.store)
-        states[key] = result
-        save_states(self.db.store, states)
-        self.place(states)
-        self._link(result)
+        if self._store_result(key, result):
+            self.place(load_states(self.db.store))
+            self._link(result)
+
+    def _store_result(self, key: str, result: dict) -> bool:
+        """Store a pair's new state (compare-and-set), unless a robot of the pair was
+        deleted (or deleted and posted again) while it was aligned: False then."""
+        if not self._leading:
+            return False
+        a, b = result["robot_a"], result["robot_b"]
+        stale = [incarnation(self.db.store, r) for r in (a, b)] != result.get("since")
+        if stale:
+            log.info("live map: %s-%s changed while aligned; result dropped", a, b)
+            return False
+        update_states(self.db.store, lambda states: states.__setitem__(key, result))
+        return True
 
     def _link(self, st: dict) -> None:
         """Register a new merge as a link (its co-visible keyframe pairs become overlaps),
@@ -171,8 +207,8 @@ class LiveMap:
             self._noted = work
 
     def _place_new_robots(self, states: dict) -> None:
-        robots = self.db.store.robot_count()
-        if robots != self._robots_placed:  # a new robot: the reference may change
+        robots = (self.db.store.robot_count(), sorted(self.copiers))
+        if robots != self._robots_placed:  # a new robot or copier: the reference may change
             self.place(states)
             self._robots_placed = robots
 
@@ -185,9 +221,10 @@ class LiveMap:
             self._place_new_robots(states)
             return False
         a, b, overlaps = due[0]
-        states[pair_key(a, b)] = st = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
-        save_states(self.db.store, states)
-        self.place(states)
+        st = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
+        if not self._store_result(pair_key(a, b), st):
+            return True
+        self.place(load_states(self.db.store))
         if st["status"] == "merged" and "last_refusal" not in st:
             self._register(a, b, st["transform"])
         return True
@@ -199,17 +236,25 @@ class LiveMap:
         verified overlaps; each with its cascade overlaps."""
         placed = set(read_placement(self.db.store).get("transforms", {}))
         now, due = time.monotonic(), []
-        quiet = self._quiet(now)
+        quiet, wall = self._quiet(now), time.time()
+        copied: dict[str, dict] = {}  # robot -> {its keyframe: the robot it repeats}
         for e in self.db.overlap_graph():
             a, b = e["robot_a"], e["robot_b"]
             if self._backoff.get(pair_key(a, b), 0.0) > now:
                 continue
-            overlaps = [o for o in self.db.overlaps(a, b) if o.source == "cascade"]
+            overlaps = evidence(self.db, a, b, self._same, copied)
             st = states.get(pair_key(a, b))
-            if overlaps and self._is_due(st, len(overlaps), a, b, quiet):
+            if not overlaps:
+                continue
+            waits = st is not None and st["status"] == "no_views"
+            changed = waits and self._view_counts(a, b) != tuple(st["views"])
+            if is_due(st, len(overlaps), self.params, quiet, changed, wall):
                 joins = (a in placed) != (b in placed) or not placed
-                due.append((not joins, -len(overlaps), a, b, overlaps))
-        return [(a, b, o) for *_, a, b, o in sorted(due, key=lambda d: d[:4])]
+                due.append((due_order(joins, st, len(overlaps), a, b), a, b, overlaps))
+        counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
+        self.copiers = copiers = copier_robots(copied, counts)
+        due = [d for d in due if d[1] not in copiers and d[2] not in copiers]
+        return [(a, b, o) for _, a, b, o in sorted(due, key=lambda d: d[0])]
 
     def _quiet(self, now: float) -> bool:
         """No keyframe arrived for `settle_s` and none waits for overlap detection: the
@@ -219,20 +264,6 @@ class LiveMap:
             self._kf_total, self._kf_changed = total, now
         self.quiet = now - self._kf_changed >= self.params.settle_s and self.db.pending() == 0
         return self.quiet
-
-    def _is_due(self, st: dict | None, n: int, a: str, b: str, quiet: bool = False) -> bool:
-        p = self.params
-        if st is None:
-            return True
-        if st["status"] == "merged":
-            if quiet and (n > st["evidence"] or st.get("budget", p.max_views) < p.max_views):
-                return True  # the robots went quiet: a last fit on every overlap and view
-            return n >= max(st["evidence"] * p.refine_factor, st["evidence"] + p.refine_min_new)
-        if st["status"] == "no_views":
-            return self._view_counts(a, b) != tuple(st["views"])
-        if quiet and st.get("budget", p.max_views) < p.max_views:
-            return True  # refused on the first, smaller fit: once more with every view
-        return n >= st["evidence"] + p.retry_min_new
 
     def _view_counts(self, a: str, b: str) -> tuple[int, int]:
         store = self.db.store
@@ -244,6 +275,7 @@ class LiveMap:
         """Align A and B from their stored views near the verified overlaps; the pair's new
         state (a gated refusal of a merged pair keeps the merge)."""
         st = {"robot_a": a, "robot_b": b, "evidence": len(overlaps), "at": time.time()}
+        st["since"] = [incarnation(self.db.store, r) for r in (a, b)]  # who was aligned
         st["attempts"] = (before or {}).get("attempts", 0) + 1
         ranked = sorted(overlaps, key=lambda o: -o.inliers)
         k = self.params.first_views if before is None else self.params.max_views
@@ -271,8 +303,9 @@ class LiveMap:
             return st | fit | {"status": "merged", "transform": T.tolist()}
         log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
         if before is not None and before["status"] == "merged":
-            keep = {k: st[k] for k in ("evidence", "attempts", "budget")}
+            keep = {k: st[k] for k in ("evidence", "attempts", "budget", "since")}
             return before | keep | {"last_refusal": answer["reason"]}
+        st["refusals"] = (before or {}).get("refusals", 0) + 1  # its back-off doubles
         return st | fit | {"status": "refused"}
 
     def _views(self, robot: str, seeds: list[int], max_views: int) -> list:
@@ -300,20 +333,29 @@ class LiveMap:
     def place(self, states: dict) -> dict:
         """Place every robot reachable from the reference through merged pairs; store the
         placement, its version raised only when it changed."""
+        from fleetmap.cycles import disagreeing
         from fleetmap.placement import optimise_poses, spanning_placement
 
         names = robot_order(self.db)
-        edges = merged_edges(states, set(names))
-        ref = reference(names, edges)
+        flagged = {r: why for r, why in self.copiers.items() if r in names}
+        edges = merged_edges(states, set(names) - set(flagged))
         old = read_placement(self.db.store)
+        counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
+        ref = reference(names, edges, counts)
         if ref is None:
             placed, optimised = {}, False
         else:
             order = [ref] + [n for n in names if n != ref]
             placed, chain = spanning_placement(order, edges)
+            bad = disagreeing(placed, chain, edges)
+            if bad:  # no robot placed through fits that disagree
+                flagged |= bad
+                edges = {k: e for k, e in edges.items() if not set(k) & set(bad)}
+                placed, chain = spanning_placement(order, edges)
             placed, optimised = optimise_poses(placed, edges, ref, chain)
         new = {"reference": ref, "transforms": {r: T.tolist() for r, T in placed.items()}}
-        if not _same_placement(old, new):
+        new["flagged"] = flagged
+        if not same_placement(old, new):
             new |= {
                 "version": old.get("version", 0) + 1,
                 "updated_at": time.time(),
@@ -331,51 +373,3 @@ def robot_order(db, robots: list[dict] | None = None) -> list[str]:
     names = [r["robot_id"] for r in (db.robots() if robots is None else robots)]
     codes = {n: db.store.robot_code(n) for n in names}
     return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])
-
-
-def merged_edges(states: dict, names: set[str]) -> dict:
-    """(A, B) -> {"T_a_b", "inliers"} of every merged pair whose robots still exist."""
-    edges = {}
-    for st in states.values():
-        if st["status"] != "merged":
-            continue
-        a, b = st["robot_a"], st["robot_b"]
-        if a in names and b in names:
-            edges[(a, b)] = {"T_a_b": np.array(st["transform"]), "inliers": st["inliers"]}
-    return edges
-
-
-def reference(names: list[str], edges: dict) -> str | None:
-    """The first robot to arrive of the largest merged group (the first robot if none)."""
-    if not names:
-        return None
-    group = {n: {n} for n in names}
-    for a, b in edges:
-        joined = group[a] | group[b]
-        for n in joined:
-            group[n] = joined
-    return min(names, key=lambda n: (-len(group[n]), names.index(n)))
-
-
-def _same_placement(old: dict, new: dict) -> bool:
-    if old.get("reference") != new["reference"] or set(old.get("transforms", {})) != set(
-        new["transforms"]
-    ):
-        return False
-    return all(
-        np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
-    )
-
-
-def load_states(store) -> dict:
-    raw = store.live_get("pairs")
-    return {} if raw is None else json.loads(raw)
-
-
-def save_states(store, states: dict) -> None:
-    store.live_put("pairs", json.dumps(states))
-
-
-def read_placement(store) -> dict:
-    raw = store.live_get("map")
-    return {} if raw is None else json.loads(raw)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import threading
 from collections import OrderedDict
 
@@ -15,8 +16,19 @@ import numpy as np
 from fleetmap.extract_pool import CLOUD_MAX_DEPTH_M, CLOUD_STRIDE  # as `fleetmap merge`
 from fleetmap.geometry import apply, pose_to_tum
 from fleetmap.place.live import load_states, read_placement, robot_order
+from fleetmap.place.live_state import incarnation
+
+log = logging.getLogger(__name__)
 
 BASE_VOXEL_M = 0.02  # each robot's cloud is kept at this voxel size, then re-voxelised
+# Bounds of what a cloud may cost, whatever the robots post within the view limits:
+CLOUD_VIEW_PIXELS = 640 * 480  # a view is decoded for the cloud at most this large
+MAX_ROBOT_POINTS = 400_000  # a robot's cached cloud (11 MB), coarser voxels beyond
+MAX_CLOUD_POINTS = 2_000_000  # a merged cloud (a 30 MB PLY), coarser voxels beyond
+MAX_EXTENT_M = 10_000.0  # points farther from the map origin are no map (bad intrinsics)
+# Views decoded per request at most (full-size pixels: about 1.5 s of PNG depth decoding);
+# a cloud with more new views fills in over the next requests.
+CLOUD_DECODE_PIXELS = 5 * 4096 * 3072
 
 
 def map_document(db) -> dict:
@@ -29,6 +41,7 @@ def map_document(db) -> dict:
     states = load_states(db.store)
     graph = db.overlap_graph()
     placed = m.get("transforms", {})
+    flagged = m.get("flagged", {})  # robots refused: copies, or fits that disagree
     counts = {r["robot_id"]: r["keyframes"] for r in robots}
     fleet = []
     for r in names:
@@ -40,7 +53,10 @@ def map_document(db) -> dict:
         "reference": m.get("reference"),
         "transforms": {r: T for r, T in placed.items() if r in counts},
         "unmerged": [
-            {"robot": f["robot"], "reason": unmerged_reason(f, states, graph, placed)}
+            {
+                "robot": f["robot"],
+                "reason": flagged.get(f["robot"]) or unmerged_reason(f, states, graph, placed),
+            }
             for f in fleet
             if f["state"] == "unmerged"
         ],
@@ -97,6 +113,8 @@ class MapRenderer:
         self._clouds: OrderedDict[str, tuple[set, np.ndarray, np.ndarray]] = OrderedDict()
         self._max_cached = max_cached_robots
         self._overview: tuple[tuple, bytes] | None = None
+        self._cloud: tuple[tuple, tuple] | None = None
+        self._spent, self.complete = 0, True  # views decoded this request; all in?
 
     def pose(self, kf_id: int) -> tuple[float, np.ndarray | None]:
         """A keyframe's stamp and camera pose (read once: they never change)."""
@@ -105,53 +123,81 @@ class MapRenderer:
             self._poses[kf_id] = (f.stamp, f.T_map_cam)
         return self._poses[kf_id]
 
-    def robot_cloud(self, robot: str) -> tuple[np.ndarray, np.ndarray]:
-        """One robot's map cloud from its stored views (its own frame), voxelised at
-        BASE_VOXEL_M; new keyframes are added to the cached cloud."""
-        from fleetmap.mapcloud import MapCloud, view_points
+    def robot_cloud(self, robot: str, fresh: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """One robot's map cloud from its stored views, in its own map frame: points of
+        shape (N, 3) float64 and colours (N, 3) uint8 RGB, voxelised at BASE_VOXEL_M (or
+        coarser: at most MAX_ROBOT_POINTS). Each view is decoded once per process, at most
+        CLOUD_VIEW_PIXELS large, and no more than CLOUD_DECODE_PIXELS of views per call
+        (`fresh`; else per cloud request): `self.complete` says whether all are in. A robot
+        deleted and posted again starts anew."""
+        with self._lock:
+            if fresh:
+                self._spent, self.complete = 0, True
+            store = self.db.store
+            ids = store.view_ids(store.robot_code(robot) or -1)
+            life = incarnation(store, robot)
+            empty = (life, set(), np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+            cached = self._clouds.pop(robot, empty)
+            _, done, pts, cols = cached if cached[0] == life else empty
+            new = self._affordable([k for k in ids if k not in done])
+            self.complete = self.complete and len(done) + len(new) == len(ids)
+            if new:
+                parts = [(pts, cols)] + [self._view_cloud(k) for k in new]
+                pts, cols = bounded_voxels(*(np.concatenate(x) for x in zip(*parts, strict=True)))
+                done = done | set(new)
+            self._clouds[robot] = (life, done, pts, cols)
+            while len(self._clouds) > self._max_cached:
+                self._clouds.popitem(last=False)
+            return pts, cols
+
+    def _affordable(self, new: list[int]) -> list[int]:
+        """The first of the new views that fit in what is left of CLOUD_DECODE_PIXELS (at
+        least one per call, so every cloud fills in)."""
+        out = []
+        for k in new:
+            info = self.db.load_frame(k)
+            if out and self._spent + info.width * info.height > CLOUD_DECODE_PIXELS:
+                break
+            self._spent += info.width * info.height
+            out.append(k)
+        return out
+
+    def _view_cloud(self, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """One stored view's share of its robot's cloud (nothing for a view that fails)."""
         from fleetmap.view import stored_view
 
-        store = self.db.store
-        ids = store.view_ids(store.robot_code(robot) or -1)
-        empty = (set(), np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
-        done, pts, cols = self._clouds.pop(robot, empty)
-        new = [k for k in ids if k not in done]
-        if new:
-            parts = [(pts, cols)]
-            for k in new:
-                v = stored_view(self.db.load_frame(k), *self.db.view_bytes(k)).decoded()
-                parts.append(
-                    view_points(
-                        v.rgb, v.depth, v.intrinsics, v.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M
-                    )
-                )
-            cloud = MapCloud(*(np.concatenate(x) for x in zip(*parts, strict=True)))
-            pts, cols = cloud.voxelised(BASE_VOXEL_M)
-            done = done | set(new)
-        self._clouds[robot] = (done, pts, cols)
-        while len(self._clouds) > self._max_cached:
-            self._clouds.popitem(last=False)
-        return pts, cols
+        try:
+            sv = stored_view(self.db.load_frame(kf_id), *self.db.view_bytes(kf_id))
+            return view_cloud(sv)
+        except Exception as exc:  # a view stored before the checks of today: left out
+            log.warning("live map: keyframe %d's view left out of the cloud: %s", kf_id, exc)
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
 
     def cloud(self, m: dict, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points in the reference frame, colours (uint8 RGB) and robot index (the order of
-        `m["robots"]`) of every placed robot, voxelised at `voxel` per robot."""
-        from fleetmap.mapcloud import MapCloud
-
-        pts, cols, idx = [], [], []
+        `m["robots"]`) of every placed robot, voxelised at `voxel` per robot (coarser past
+        MAX_CLOUD_POINTS in all); the last answer is kept while the map is unchanged."""
+        key = (m["version"], tuple(f["views"] for f in m["fleet"]), voxel)
         with self._lock:
-            for k, r in enumerate(m["robots"]):
-                if r not in m["transforms"]:
-                    continue
-                p, c = self.robot_cloud(r)
+            if self._cloud is not None and self._cloud[0] == key:
+                return self._cloud[1]
+            placed = [(k, r) for k, r in enumerate(m["robots"]) if r in m["transforms"]]
+            self._spent, self.complete = 0, True
+            clouds = {r: self.robot_cloud(r, fresh=False) for _, r in placed}
+            total = sum(len(p) for p, _ in clouds.values())
+            while voxel < 1.0 and total > MAX_CLOUD_POINTS * (voxel / BASE_VOXEL_M) ** 2:
+                voxel *= 2  # a voxel twice as large keeps about a quarter of a surface
+            pts, cols, idx = [], [], []
+            for k, r in placed:
+                p, c = clouds[r]
                 if len(p) and voxel > BASE_VOXEL_M:
-                    p, c = MapCloud(p, c).voxelised(voxel)
+                    p, c = _voxelised(p, c, voxel)
                 pts.append(apply(np.array(m["transforms"][r]), p))
                 cols.append(c)
                 idx.append(np.full(len(p), k, np.uint16))
-        if not pts:
-            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.uint16)
-        return np.concatenate(pts), np.concatenate(cols), np.concatenate(idx)
+            out = _joined(pts, cols, idx)
+            self._cloud = (key, out) if self.complete else None
+            return out
 
     def trajectories(self, m: dict) -> dict[str, list[list[float]]]:
         """Each placed robot's keyframe poses in the reference frame: [stamp, tx, ty, tz,
@@ -198,8 +244,8 @@ class MapRenderer:
                 title=f"fleetmap live map v{m['version']}: {len(names)} robots placed, "
                 f"{len(m['unmerged'])} unmerged\nreference frame: {m['reference']}'s map",
             )
-        self._overview = (key, buf.getvalue())
-        return self._overview[1]
+        self._overview = (key, buf.getvalue()) if self.complete else None
+        return buf.getvalue()
 
 
 def _empty_picture(buf, m: dict) -> None:
@@ -211,3 +257,58 @@ def _empty_picture(buf, m: dict) -> None:
     ax.set_axis_off()
     fig.savefig(buf, format="png")
     plt.close(fig)
+
+
+def view_cloud(view) -> tuple[np.ndarray, np.ndarray]:
+    """A stored view's share of its robot's map cloud (`fleetmap.view.StoredView`), as
+    `fleetmap merge` takes it (every CLOUD_STRIDE-th pixel under CLOUD_MAX_DEPTH_M) from
+    the view decoded at most CLOUD_VIEW_PIXELS large (JPEG colour at 1/2, 1/4 or 1/8 by the
+    decoder itself): points (M, 3) float64 in the robot's map frame, colours (M, 3) uint8."""
+    from dataclasses import replace
+
+    import cv2
+
+    from fleetmap.mapcloud import view_points
+    from fleetmap.view import decode_image
+
+    k = view.intrinsics
+    f = 1
+    while f < 8 and k.width * k.height > CLOUD_VIEW_PIXELS * f * f:
+        f *= 2
+    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2}.get(f)
+    flag = flag if flag is not None else getattr(cv2, f"IMREAD_REDUCED_COLOR_{f}")
+    rgb = cv2.imdecode(np.frombuffer(view.encoded["rgb"], np.uint8), flag)
+    depth = decode_image(view.encoded["depth"], "depth", True)[::f, ::f]
+    if rgb is None:
+        raise ValueError("colour does not decode")
+    h, w = min(rgb.shape[0], depth.shape[0]), min(rgb.shape[1], depth.shape[1])
+    small = replace(k, fx=k.fx / f, fy=k.fy / f, cx=k.cx / f, cy=k.cy / f, width=w, height=h)
+    pts, cols = view_points(
+        rgb[:h, :w], depth[:h, :w], small, view.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M
+    )
+    keep = np.all(np.abs(pts) < MAX_EXTENT_M, axis=1)  # also drops NaN and inf
+    return pts[keep], cols[keep]
+
+
+def bounded_voxels(pts: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Voxelised at BASE_VOXEL_M, or at twice that and so on until MAX_ROBOT_POINTS."""
+    voxel = BASE_VOXEL_M
+    pts, cols = _voxelised(pts, cols, voxel)
+    while len(pts) > MAX_ROBOT_POINTS:
+        voxel *= 2
+        pts, cols = _voxelised(pts, cols, voxel)
+    return pts, cols
+
+
+def _voxelised(pts: np.ndarray, cols: np.ndarray, voxel: float) -> tuple:
+    from fleetmap.mapcloud import MapCloud
+
+    if not len(pts):
+        return pts, cols
+    return MapCloud(pts, cols).voxelised(voxel)
+
+
+def _joined(pts: list, cols: list, idx: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if not pts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.uint16)
+    return np.concatenate(pts), np.concatenate(cols), np.concatenate(idx)

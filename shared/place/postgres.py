@@ -142,15 +142,17 @@ class PostgresStore:
 
     @contextlib.contextmanager
     def exclusive(self, what: str):
-        """Held by one replica at a time (a session advisory lock); Conflict if taken."""
+        """Held by one replica at a time (a session advisory lock); Conflict if taken.
+        Yields `held()`: False once the session lost it (server restarted, link broken)."""
         with self.conn() as con:
             key = schema.LOCKS[what]
             if not con.execute("SELECT pg_try_advisory_lock(%s)", (key,)).fetchone()[0]:
                 raise Conflict(f"A {what} is already running on another replica")
             try:
-                yield
+                yield lambda: schema.lock_held(con, key)
             finally:
-                con.execute("SELECT pg_advisory_unlock(%s)", (key,))
+                with contextlib.suppress(Exception):  # a lost session holds nothing
+                    con.execute("SELECT pg_advisory_unlock(%s)", (key,))
 
     # --- keyframes ----------------------------------------------------------------
 
@@ -224,9 +226,7 @@ class PostgresStore:
         if row is None:
             raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
         data = bytes(row[0])
-        if len(data) < 4 or zlib.crc32(memoryview(data)[:-4]) != int.from_bytes(
-            data[-4:], "little"
-        ):
+        if len(data) < 4 or zlib.crc32(data[:-4]) != int.from_bytes(data[-4:], "little"):
             self.storage_errors += 1
             log.error("keyframe %d: stored frame fails its CRC-32 (storage corrupted)", kf_id)
             raise StorageCorrupt(
@@ -288,11 +288,8 @@ class PostgresStore:
         )[0]
 
     def parked(self) -> dict[int, str]:
-        rows = self._all(
-            "SELECT id FROM keyframes WHERE NOT processed AND attempts >= %s ORDER BY id "
-            "DESC LIMIT 100",
-            (MAX_ATTEMPTS,),
-        )
+        sql = "SELECT id FROM keyframes WHERE NOT processed AND attempts >= %s ORDER BY id "
+        rows = self._all(sql + "DESC LIMIT 100", (MAX_ATTEMPTS,))
         return {r[0]: f"overlap detection failed {MAX_ATTEMPTS} times" for r in rows}
 
     def claim(self, compute: Callable[[int], tuple | None]) -> int | None:
@@ -359,7 +356,7 @@ class PostgresStore:
     def delete_robot(self, code: int, then: Callable[[np.ndarray], None]) -> int:
         with self._write_lock:
             with self.conn() as con, con.transaction():
-                ids = schema.delete_robot(con, code)
+                ids = schema.delete_robot(con, code, self.robot_name(code))
             then(ids)
             self.forget_robot(code)
         return len(ids)
@@ -380,11 +377,14 @@ class PostgresStore:
         with self.conn() as con:
             con.execute(schema.LIVE_PUT, (key, value))
 
+    def live_cas(self, key: str, old: str | None, new: str) -> bool:
+        with self.conn() as con:
+            return schema.live_cas(con, key, old, new)
+
     def ping(self) -> bool:
-        try:
+        with contextlib.suppress(Unavailable):
             return self._one("SELECT 1") == (1,)
-        except Unavailable:
-            return False
+        return False
 
     def size_bytes(self) -> int:
         return self._one("SELECT pg_database_size(current_database())")[0]

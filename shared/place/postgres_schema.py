@@ -225,9 +225,10 @@ def put_link(con, code_a: int, code_b: int, T_a_b: np.ndarray, rows: list[LinkRo
     return insert_link_rows(con, rows, now)
 
 
-def delete_robot(con, code: int) -> np.ndarray:
-    """Delete a robot with its keyframes, overlaps and links; log it for the other
-    replicas' indexes. Returns the keyframe ids removed."""
+def delete_robot(con, code: int, name: str | None = None) -> np.ndarray:
+    """Delete a robot with its keyframes, overlaps, links and the live map's states
+    derived from it; log it for the other replicas' indexes. Returns the keyframe ids
+    removed."""
     ids = np.array(
         [r[0] for r in con.execute("SELECT id FROM keyframes WHERE robot=%s", (code,))],
         dtype=np.int64,
@@ -237,7 +238,43 @@ def delete_robot(con, code: int) -> np.ndarray:
     con.execute("DELETE FROM keyframes WHERE robot=%s", (code,))
     con.execute("DELETE FROM robots WHERE id=%s", (code,))
     con.execute("INSERT INTO deletions (robot, created) VALUES (%s, %s)", (code, time.time()))
+    if name is not None:
+        _forget_live(con, name)
     return ids
+
+
+def _forget_live(con, name: str) -> None:
+    """In the delete's transaction: the live map's rows without what robot `name` gave
+    (rows locked, so a compare-and-set of another replica waits and then fails)."""
+    from fleetmap.place.live_state import forget_robot
+
+    sql = "SELECT key, value FROM live WHERE key IN ('pairs', 'map') FOR UPDATE"
+    rows = dict(con.execute(sql).fetchall())
+    new = forget_robot(rows.get("pairs"), rows.get("map"), name)
+    for key, value in zip(("pairs", "map"), new, strict=True):
+        if value is not None:
+            con.execute(LIVE_PUT, (key, value))
+
+
+def lock_held(con, key: int) -> bool:
+    """This session still holds the advisory lock `key` (False if the session is gone)."""
+    sql = (
+        "SELECT count(*) FROM pg_locks WHERE locktype='advisory' AND granted "
+        "AND pid=pg_backend_pid() AND classid::bigint=%s AND objid::bigint=%s AND objsubid=1"
+    )
+    try:
+        return con.execute(sql, (key >> 32, key & 0xFFFFFFFF)).fetchone()[0] > 0
+    except Exception:  # the connection broke: the server dropped the session and its locks
+        return False
+
+
+def live_cas(con, key: str, old: str | None, new: str) -> bool:
+    """Set a live row to `new` if it still holds `old` (None: absent); True if it was set."""
+    if old is None:
+        sql = "INSERT INTO live VALUES (%s, %s) ON CONFLICT (key) DO NOTHING"
+        return con.execute(sql, (key, new)).rowcount == 1
+    sql = "UPDATE live SET value=%s WHERE key=%s AND value=%s"
+    return con.execute(sql, (new, key, old)).rowcount == 1
 
 
 def check_reachable(url: str, timeout_s: int = 5) -> None:

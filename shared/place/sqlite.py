@@ -204,6 +204,10 @@ class SQLiteStore:
         with self._write_lock:
             self._db.execute("INSERT OR REPLACE INTO live VALUES (?, ?)", (key, value))
 
+    def live_cas(self, key: str, old: str | None, new: str) -> bool:
+        with self._write_lock:
+            return files.live_cas(self._db, key, old, new)
+
     def frame_bytes(self, kf_id: int) -> bytes:
         """The stored encoded frame of a keyframe, its CRC-32 checked."""
         row = self._read("SELECT data FROM keyframes WHERE id=?", (int(kf_id),)).fetchone()
@@ -349,7 +353,8 @@ class SQLiteStore:
     # --- administration ----------------------------------------------------------------
 
     def delete_robot(self, code: int, then: Callable[[np.ndarray], None]) -> int:
-        """Delete a robot, its keyframes, overlaps and links; `then(ids)` runs under the
+        """Delete a robot, its keyframes, overlaps, links and the live map's pair states
+        and placements derived from it, in one transaction; `then(ids)` runs under the
         write lock after the commit. Returns the number of keyframes removed."""
         with self._write_lock:
             ids = np.array(
@@ -361,6 +366,7 @@ class SQLiteStore:
                 self._db.execute("DELETE FROM links WHERE robot_a=? OR robot_b=?", (code, code))
                 self._db.execute("DELETE FROM keyframes WHERE robot=?", (code,))
                 self._db.execute("DELETE FROM robots WHERE id=?", (code,))
+                files.forget_live(self._db, self._names[code])
             then(ids)
             self._codes.pop(self._names.pop(code), None)
         return len(ids)

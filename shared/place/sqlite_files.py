@@ -214,3 +214,25 @@ class Transaction:
         self.db.execute("ROLLBACK")
         self.rolled_back = kind is Rollback
         return self.rolled_back
+
+
+def forget_live(db: sqlite3.Connection, name: str) -> None:
+    """In the caller's transaction: the live map's rows without what robot `name` gave
+    (`fleetmap.place.live_state.forget_robot`)."""
+    from fleetmap.place.live_state import forget_robot
+
+    rows = dict(db.execute("SELECT key, value FROM live WHERE key IN ('pairs', 'map')"))
+    new = forget_robot(rows.get("pairs"), rows.get("map"), name)
+    for key, value in zip(("pairs", "map"), new, strict=True):
+        if value is not None:
+            db.execute("INSERT OR REPLACE INTO live VALUES (?, ?)", (key, value))
+
+
+def live_cas(db: sqlite3.Connection, key: str, old: str | None, new: str) -> bool:
+    """Set a live row to `new` if it still holds `old` (None: absent); caller holds the
+    write lock. True if it was set."""
+    if old is None:
+        cur = db.execute("INSERT OR IGNORE INTO live VALUES (?, ?)", (key, new))
+    else:
+        cur = db.execute("UPDATE live SET value=? WHERE key=? AND value=?", (new, key, old))
+    return cur.rowcount == 1

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from fleetmap.dataset import load_depth, load_rgb, read_recording
 from fleetmap.errors import BadFrame, BadInput
 from fleetmap.extract import FrameExtractor
-from fleetmap.frame import MAX_FEATURES, MAX_FRAME_BYTES, Frame, decode, encode
+from fleetmap.frame import MAX_FEATURES, MAX_FRAME_BYTES, Frame, check_robot_id, decode, encode
 
 
 @pytest.fixture(scope="module")
@@ -180,3 +180,11 @@ def test_hostile_headers_are_clean_errors():
     digits = b'{"robot_id": "r1", "stamp": ' + b"9" * 5000 + b"}"
     with pytest.raises(BadFrame, match="Bad frame header|Invalid frame"):
         decode(_reframed(buf, header=digits))
+
+
+@pytest.mark.parametrize("bad", ["sa\n", "sa\r\n", "\nsa", "sa\x00", "-sa", "a" * 65, ""])
+def test_robot_ids_are_matched_whole(bad):
+    """Issue 26.9: `$` let "sa\\n" through as a second robot beside "sa"."""
+    assert check_robot_id("sa") == "sa"
+    with pytest.raises(BadInput, match="Robot id must match"):
+        check_robot_id(bad)

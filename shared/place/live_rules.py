@@ -1,0 +1,133 @@
+"""The merge worker's rules, pure functions of the stored state: when a pair is due, in
+which order due pairs go (fair: no pair can stay first by gaining evidence), and which
+robot is the reference (not one a newcomer wins by arriving first).
+
+A refused pair is due again only once its evidence grew by `retry_factor` (and at least
+`retry_min_new` overlaps) and its back-off since the last attempt has passed, doubling
+with each refusal up to `retry_backoff_max_s`: however fast a robot posts, its pair costs
+the aligner a bounded number of attempts. Due pairs go in order: those that place a new
+robot first, then the one tried longest ago (never tried first), then by evidence.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: float) -> bool:
+    """Whether a pair with state `st` (None: never tried) and `n` verified overlaps is due
+    (`p`: `LiveParams`; `now`: unix time, as `st["at"]`)."""
+    if st is None:
+        return True
+    if st["status"] == "merged":
+        if quiet and (n > st["evidence"] or st.get("budget", p.max_views) < p.max_views):
+            return True  # the robots went quiet: a last fit on every overlap and view
+        return n >= max(st["evidence"] * p.refine_factor, st["evidence"] + p.refine_min_new)
+    if st["status"] == "no_views":
+        return views_changed
+    if now - st.get("at", 0.0) < backoff_s(st, p):
+        return False
+    if quiet and st.get("budget", p.max_views) < p.max_views:
+        return True  # refused on the first, smaller fit: once more with every view
+    return n >= max(st["evidence"] + p.retry_min_new, np.ceil(st["evidence"] * p.retry_factor))
+
+
+def backoff_s(st: dict, p) -> float:
+    """How long a refused pair waits after its last attempt: doubling per refusal."""
+    refusals = max(1, st.get("refusals", 1))
+    return min(p.retry_backoff_s * 2.0 ** (refusals - 1), p.retry_backoff_max_s)
+
+
+def due_order(joins: bool, st: dict | None, n: int, a: str, b: str) -> tuple:
+    """Sort key of a due pair: new robots first, then round-robin by last attempt, then
+    the most evidence."""
+    return (not joins, 0.0 if st is None else st.get("at", 0.0), -n, a, b)
+
+
+def reference(names: list[str], edges: dict, counts: dict | None = None) -> str | None:
+    """The reference robot: of the largest merged group, the robot with the most
+    keyframes, ties by name. Arriving first wins nothing, and the same stored state gives
+    the same reference on every replica and after a restart."""
+    if not names:
+        return None
+    counts = counts or {}
+    group = {n: {n} for n in names}
+    for a, b in edges:
+        joined = group[a] | group[b]
+        for n in joined:
+            group[n] = joined
+    size = max(len(g) for g in group.values())
+    return min((n for n in names if len(group[n]) == size), key=lambda n: (-counts.get(n, 0), n))
+
+
+def merged_edges(states: dict, names: set[str]) -> dict:
+    """(A, B) -> {"T_a_b", "inliers"} of every merged pair whose robots still exist."""
+    edges = {}
+    for st in states.values():
+        if st["status"] != "merged":
+            continue
+        a, b = st["robot_a"], st["robot_b"]
+        if a in names and b in names:
+            edges[(a, b)] = {"T_a_b": np.array(st["transform"]), "inliers": st["inliers"]}
+    return edges
+
+
+def same_placement(old: dict, new: dict) -> bool:
+    if old.get("reference") != new["reference"] or set(old.get("transforms", {})) != set(
+        new["transforms"]
+    ):
+        return False
+    if old.get("flagged", {}) != new.get("flagged", {}):
+        return False
+    return all(
+        np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
+    )
+
+
+def same_picture(fa, fb, tol_px: float = 0.5, share: float = 0.9) -> bool:
+    """Whether two frames (`fleetmap.frame.Frame`) are one picture posted twice: of the
+    same size, with `share` of the features of each at the same pixel (within `tol_px`).
+    Two cameras, or one camera twice, never put 90% of their MSER regions on the same
+    pixels unless the picture is the same; such a keyframe is no second look at a place."""
+    from scipy.spatial import cKDTree
+
+    if (fa.width, fa.height) != (fb.width, fb.height) or min(
+        len(fa.keypoints), len(fb.keypoints)
+    ) < 20:
+        return False
+    for x, y in ((fa.keypoints, fb.keypoints), (fb.keypoints, fa.keypoints)):
+        d, _ = cKDTree(y).query(x, distance_upper_bound=tol_px)
+        if np.mean(np.isfinite(d)) < share:
+            return False
+    return True
+
+
+def evidence(db, a: str, b: str, same: dict, copied: dict) -> list:
+    """The pair's cascade overlaps that are a second look at a place, not one picture
+    posted by both (`same_picture`, cached in `same` per keyframe pair); each copy (the
+    later keyframe) is noted in `copied`: robot -> {keyframe: the robot it repeats}."""
+    out = []
+    for o in db.overlaps(a, b):
+        if o.source != "cascade":
+            continue
+        key = (o.kf_a, o.kf_b)
+        if key not in same:
+            same[key] = same_picture(db.load_frame(o.kf_a), db.load_frame(o.kf_b))
+        if not same[key]:
+            out.append(o)
+            continue
+        copier, kf, other = (b, o.kf_b, a) if o.kf_b > o.kf_a else (a, o.kf_a, b)
+        copied.setdefault(copier, {})[kf] = other
+    return out
+
+
+def copier_robots(copied: dict, counts: dict) -> dict[str, str]:
+    """{robot: reason} of robots at least half of whose keyframes repeat other robots'
+    pictures: they bring no observation of their own and are not placed (fewer copies are
+    only left out of the evidence)."""
+    return {
+        r: f"{len(kfs)} of its {counts[r]} keyframes repeat the pictures of "
+        f"{', '.join(sorted(set(kfs.values())))}: no evidence of where it is"
+        for r, kfs in copied.items()
+        if r in counts and 2 * len(kfs) >= counts[r]
+    }

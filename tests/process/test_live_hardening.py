@@ -1,0 +1,95 @@
+"""The place database's HTTP surface under the live map's load (issue 26.8, 26.10, 26.11):
+/healthz answers while map requests wait, security headers on every response, a client
+hanging up mid-body logs one INFO line. Real uvicorn servers on loopback."""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import hashlib
+import re
+import socket
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import httpx
+import uvicorn
+from fastapi.testclient import TestClient
+
+from fleetmap.services.place_db.config import Settings
+from fleetmap.services.place_db.main import create_app
+from tests.servers import Service, free_port
+
+
+@contextlib.contextmanager
+def serving(app):
+    """The app on a real uvicorn server in this process (its state reachable)."""
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    while not server.started:
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+
+def test_healthz_answers_while_sixty_map_requests_wait(tmp_path):
+    """Issue 26.8: 60 overview and cloud requests that cannot progress (the renderer held)
+    used to take every worker thread of the server; /healthz then waited with them."""
+    app = create_app(Settings(data_dir=tmp_path))
+    with serving(app) as url:
+        paths = ["/map/overview.png", "/map/cloud.ply"] * 30
+        with ThreadPoolExecutor(60) as pool:
+            with app.state.renderer._lock:
+                waiting = [pool.submit(httpx.get, url + p, timeout=300) for p in paths]
+                time.sleep(3)  # for the 60 requests to reach the server (no time asserted)
+                health = httpx.get(url + "/healthz", timeout=20)
+                assert health.status_code == 200 and health.json()["status"] == "ok"
+                assert httpx.get(url + "/robots", timeout=20).status_code == 200
+            assert [f.result().status_code for f in waiting] == [200] * 60  # no 5xx after
+
+
+def test_every_response_carries_the_security_headers(tmp_path):
+    """Issue 26.10: CSP (scripts, frame ancestors), nosniff, no caching of data; the page's
+    token leaves the address bar once read."""
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as client:
+        for path in ("/", "/map", "/robots", "/healthz", "/keyframes/1/view", "/nope"):
+            r = client.get(path)
+            assert r.headers["x-content-type-options"] == "nosniff", path
+            assert r.headers["x-frame-options"] == "DENY", path
+            assert "frame-ancestors 'none'" in r.headers["content-security-policy"], path
+            assert r.headers["cache-control"] == "no-store", path
+        page = client.get("/")
+        script = re.search(r"<script>(.*?)</script>", page.text, re.S).group(1)
+        digest = base64.b64encode(hashlib.sha256(script.encode()).digest()).decode()
+        csp = page.headers["content-security-policy"]
+        assert f"'sha256-{digest}'" in csp and "default-src 'none'" in csp
+        assert "unsafe-inline" not in csp.split("script-src")[1].split(";")[0]
+        assert "history.replaceState" in script
+
+
+def test_a_client_hanging_up_mid_body_logs_one_info_line(tmp_path):
+    """Issue 26.11: 60 such clients wrote 340 KB of ERROR tracebacks."""
+    svc = Service("place-db", tmp_path).start()
+    try:
+        for _ in range(5):
+            with socket.create_connection(("127.0.0.1", svc.port)) as sock:
+                sock.sendall(
+                    b"POST /robots/alpha/keyframes HTTP/1.1\r\nHost: x\r\n"
+                    b"Content-Type: application/octet-stream\r\nContent-Length: 100000\r\n\r\n"
+                    + bytes(1000)
+                )
+        deadline = time.monotonic() + 20
+        while svc.read_log().count("disconnected") < 5 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert httpx.get(svc.url + "/healthz").status_code == 200
+    finally:
+        svc.stop()
+    log = svc.read_log()
+    assert "Traceback" not in log and "ERROR" not in log, log[-3000:]
+    assert log.count("client disconnected mid-request") == 5, log[-3000:]
