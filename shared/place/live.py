@@ -3,16 +3,19 @@
 A merge worker (one thread; on PostgreSQL one replica at a time, under an advisory lock)
 looks at the verified overlaps of every robot pair once a second. A pair is aligned when it
 has new evidence: first overlaps, more overlaps after the gate refused it, or many more
-(`refine_factor`) since it was merged. The views sent are the stored RGB-D views near its
-verified keyframes, chosen as `fleetmap merge` chooses them (`fleetmap.pairs.spread`), so a
-live map is as accurate as a batch merge of the same keyframes. A gated result becomes a
-link (`PlaceDB.add_link`) and the fleet is placed again (`fleetmap.placement`: spanning
-tree, pose graph). Pair states and the placement are stored (`Store.live_put`), so a
-restart aligns nothing twice and serves the same map.
+(`refine_factor`) since it was merged; once the robots are quiet, a pair with no verified
+overlap is aligned once from the place database's nominated keyframe pairs (the BoW-nearest,
+`fleetmap.place.nominate`), again only after either robot gained keyframes. The views sent
+are the stored RGB-D views near its verified keyframes, chosen as `fleetmap merge` chooses
+them (`fleetmap.pairs.spread`), so a live map is as accurate as a batch merge of the same
+keyframes. A gated result becomes a link (`PlaceDB.add_link`) and the fleet is placed again
+(`fleetmap.placement`: spanning tree, pose graph). Pair states and the placement are stored
+(`Store.live_put`), so a restart aligns nothing twice and serves the same map.
 
 Pair state, per "A|B" (names sorted): status merged | refused | no_views, evidence (the
 cascade overlaps it was aligned on), views, the transform (B's map into A's), inliers,
-the aligner's reason, attempts, at (unix time).
+the aligner's reason, attempts, at (unix time), nominated (the robots' keyframe counts when
+it was tried on nominated pairs).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from fleetmap.place.live_rules import (
     evidence,
     is_due,
     merged_edges,
+    nominated_pairs,
     reference,
     same_placement,
 )
@@ -46,6 +50,7 @@ from fleetmap.place.live_state import (
     read_placement,
     update_states,
 )
+from fleetmap.place.nominate import nominated_overlaps
 from fleetmap.view import stored_view
 
 log = logging.getLogger(__name__)
@@ -254,6 +259,14 @@ class LiveMap:
         counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
         self.copiers = copiers = copier_robots(copied, counts)
         due = [d for d in due if d[1] not in copiers and d[2] not in copiers]
+        if quiet:  # no pair verified: where the bags of words point (issue 21)
+            graph = {pair_key(e["robot_a"], e["robot_b"]) for e in self.db.overlap_graph()}
+            for a, b in nominated_pairs(states, graph, counts, set(copiers)):
+                if overlaps := nominated_overlaps(self.db, a, b):
+                    joins = (a in placed) != (b in placed) or not placed
+                    due.append(
+                        (due_order(joins, states.get(pair_key(a, b)), 0, a, b), a, b, overlaps)
+                    )
         return [(a, b, o) for _, a, b, o in sorted(due, key=lambda d: d[0])]
 
     def _quiet(self, now: float) -> bool:
@@ -275,10 +288,15 @@ class LiveMap:
         """Align A and B from their stored views near the verified overlaps; the pair's new
         state (a gated refusal of a merged pair keeps the merge)."""
         st = {"robot_a": a, "robot_b": b, "evidence": len(overlaps), "at": time.time()}
+        nominated = bool(overlaps) and overlaps[0].source == "nominated"
+        if nominated:  # no verified evidence: one try, with every view, until keyframes grow
+            counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
+            st |= {"evidence": 0, "nominated": [counts.get(a, 0), counts.get(b, 0)]}
         st["since"] = [incarnation(self.db.store, r) for r in (a, b)]  # who was aligned
         st["attempts"] = (before or {}).get("attempts", 0) + 1
         ranked = sorted(overlaps, key=lambda o: -o.inliers)
-        k = self.params.first_views if before is None else self.params.max_views
+        first = before is None and not nominated
+        k = self.params.first_views if first else self.params.max_views
         st["budget"] = k  # views per robot this fit could use
         views = [
             self._views(a, [o.kf_a for o in ranked], k),

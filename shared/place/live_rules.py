@@ -32,6 +32,24 @@ def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: fl
     return n >= max(st["evidence"] + p.retry_min_new, np.ceil(st["evidence"] * p.retry_factor))
 
 
+def nominated_pairs(states: dict, verified: set[str], counts: dict, skip: set) -> list:
+    """Robot pairs (a, b) to align from nominated keyframe pairs once the robots are quiet:
+    both with keyframes, none in `skip`, no verified overlap between them, not merged, and
+    not tried on nominations since either robot's keyframe count changed (`counts`: robot
+    -> keyframes; a pair's state keeps the counts it was tried at, "nominated")."""
+    names = sorted(r for r, n in counts.items() if n and r not in skip)
+    out = []
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            key = "|".join((a, b))
+            st = states.get(key)
+            if key in verified or (st is not None and st["status"] == "merged"):
+                continue
+            if st is None or st.get("nominated") != [counts[a], counts[b]]:
+                out.append((a, b))
+    return out
+
+
 def backoff_s(st: dict, p) -> float:
     """How long a refused pair waits after its last attempt: doubling per refusal."""
     refusals = max(1, st.get("refusals", 1))
