@@ -26,6 +26,7 @@ from fleetmap.dataset import Recording
 from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
 from fleetmap.extract_pool import extract_keyframes
+from fleetmap.fleet.correct import correct_fleet
 from fleetmap.mapcloud import MapCloud
 from fleetmap.pairs import pair_views
 from fleetmap.placement import optimise_poses, spanning_placement
@@ -79,7 +80,7 @@ def run_merge(
         db = stack.enter_context(PlaceDBClient(place_db, token=token))
         al = stack.enter_context(AlignerClient(aligner, timeout=900, token=token))
         checked_vocabulary(db, vocab_path)
-        clouds = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
+        clouds, parts = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
         with timed(timing, "overlaps"):
             overlaps, by_pair = find_overlaps(db, ids)
         with timed(timing, "align"):
@@ -87,7 +88,10 @@ def run_merge(
         with timed(timing, "outputs"):
             placed, chain = spanning_placement(ids, edges)
             placed, optimised = optimise_poses(placed, edges, ids[0], chain)
-            drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd)
+        with timed(timing, "fleet_graph"):
+            fleet = correct_fleet(parts, placed, edges, overlaps, ids[0])
+        with timed(timing, "outputs"):
+            drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd, fleet)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
     params = {
@@ -98,12 +102,22 @@ def run_merge(
         "vocabulary": str(vocab_path) if vocab_path else "default",
     }
     report = build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params)
+    add_fleet_report(report, fleet)
     with timed(timing, "outputs"):
         write_pictures(out, ids, drawing, report)
     timing["total"] = time.perf_counter() - t_all
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+def add_fleet_report(report: dict, fleet) -> None:
+    """The fleet graph's figures; per robot the best rigid T_ref_R of its corrected map and
+    how far the drift correction moved it."""
+    report["fleet_graph"] = fleet.summary()
+    for r, c in fleet.robots.items():
+        report["transforms"][r] = c.rigid.tolist()
+        report["robots"][r]["drift_correction"] = c.summary()
 
 
 def checked_vocabulary(client: PlaceDBClient, path):
@@ -120,9 +134,10 @@ def checked_vocabulary(client: PlaceDBClient, path):
 
 def ingest(
     keyframes, db, total: int, timing: dict, quiet: bool, in_flight: int = 8
-) -> dict[str, MapCloud]:
+) -> tuple[dict[str, MapCloud], dict[str, list]]:
     """POST every extracted keyframe, up to `in_flight` at once (the place database commits
-    concurrent keyframes together); returns each robot's map cloud (all keyframes).
+    concurrent keyframes together); returns each robot's map cloud (all keyframes) and its
+    keyframes in time order.
 
     timing["extract"]: time spent waiting for the extraction workers; timing["ingest"]:
     from the last keyframe extracted to the last one acknowledged."""
@@ -145,7 +160,7 @@ def ingest(
             bar.update()
         timing["ingest"] = time.perf_counter() - t
     bar.close()
-    return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}
+    return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}, parts
 
 
 def find_overlaps(db, ids: list[str]) -> tuple[list[dict], dict]:
