@@ -17,7 +17,7 @@ import numpy as np
 
 from fleetmap.frame import Frame
 from fleetmap.geometry import apply, invert
-from fleetmap.matching import verify_pair
+from fleetmap.matching import DEFAULT_MATCH_PARAMS, match_descriptors, verify_pair
 from fleetmap.registration import ransac_rigid
 
 
@@ -59,22 +59,23 @@ def relative_pose(
     fa: Frame, fb: Frame, params: ClosureParams = ClosureParams()
 ) -> tuple[np.ndarray, int] | None:
     """(T_cama_camb of shape (4, 4), inliers) from the two frames' matched features with
-    depth, or None when the pair does not verify."""
+    depth, or None when the pair does not verify. The rigid RANSAC over the matches' 3D
+    points runs first (cheap, and most candidates fail it); the survivors must also pass
+    the epipolar verification of the place database."""
     pa, va = camera_points(fa)
     pb, vb = camera_points(fb)
-    ver = verify_pair(
-        fa.keypoints, fa.descriptors, fb.keypoints, fb.descriptors, points_a=(pa, va),
-        points_b=(pb, vb),
-    )  # fmt: skip
-    if not ver.verified:
-        return None
-    both = va[ver.idx_a] & vb[ver.idx_b]
+    ia, ib = match_descriptors(fa.descriptors, fb.descriptors, DEFAULT_MATCH_PARAMS.ratio)
+    both = va[ia] & vb[ib]
     if both.sum() < params.min_inliers:
         return None
-    T, inl = ransac_rigid(pb[ver.idx_b[both]], pa[ver.idx_a[both]], params.tol_m)
+    T, inl = ransac_rigid(pb[ib[both]], pa[ia[both]], params.tol_m)
     if inl.sum() < params.min_inliers:
         return None
-    return T, int(inl.sum())
+    ver = verify_pair(
+        fa.keypoints, fa.descriptors, fb.keypoints, fb.descriptors, points_a=(pa, va),
+        points_b=(pb, vb), matches=(ia, ib),
+    )  # fmt: skip
+    return (T, int(inl.sum())) if ver.verified else None
 
 
 def gist_candidates(
@@ -117,4 +118,36 @@ def find_closures(
         fit = relative_pose(frames[ra][i], frames[rb][j], params)
         if fit is not None:
             out.append(Closure(ra, i, rb, j, fit[0], fit[1]))
+    return out
+
+
+def refine_with_depth(
+    closures: list[Closure], keyframes: dict[str, list], params: ClosureParams = ClosureParams()
+) -> list[Closure]:
+    """Each feature closure refined by point-to-plane ICP between its two keyframes' depth
+    clouds (in the cameras' frames), kept where ICP overlaps well and moves the fit by less
+    than the 3D tolerance (else the feature fit stands). keyframes[R]: the extracted
+    `Keyframe`s (map-cloud points in the robot's map frame)."""
+    from fleetmap.mapcloud import MapCloud, icp
+
+    cache: dict[tuple[str, int], object] = {}
+
+    def cloud(r: str, i: int):
+        if (r, i) not in cache:
+            kf = keyframes[r][i]
+            pts = apply(invert(kf.frame.T_map_cam), kf.points.astype(np.float64))
+            cache[(r, i)] = MapCloud(pts, None).o3d(params.tol_m / 2)
+        return cache[(r, i)]
+
+    out = []
+    for c in closures:
+        if c.source == "features":
+            T, fitness, _ = icp(
+                cloud(c.robot_b, c.j), cloud(c.robot_a, c.i), c.T_a_b,
+                distances=(params.tol_m, params.tol_m / 2), iterations=30,
+            )  # fmt: skip
+            D = invert(c.T_a_b) @ T
+            if fitness >= 0.3 and np.linalg.norm(D[:3, 3]) < params.tol_m:
+                c = Closure(c.robot_a, c.i, c.robot_b, c.j, T, c.inliers, "depth")
+        out.append(c)
     return out

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fleetmap.fleet.closures import Closure, ClosureParams, find_closures
+from fleetmap.fleet.closures import Closure, ClosureParams, find_closures, refine_with_depth
 from fleetmap.fleet.graph import GraphParams, Solution, optimise
 from fleetmap.geometry import apply, invert
 from fleetmap.mapcloud import MapCloud
@@ -136,7 +136,7 @@ class FleetCorrection:
         kinds = [c.source for c in sol.closures]
         return {
             "keyframes": int(sum(len(c.stamps) for c in self.robots.values())),
-            "closures": {k: kinds.count(k) for k in ("features", "fit")},
+            "closures": {k: kinds.count(k) for k in ("features", "depth", "fit")},
             "intra_robot": sum(c.robot_a == c.robot_b for c in sol.closures),
             "rejected": int((sol.weights < 0.5).sum()),
             "optimise_s": round(sol.seconds, 3),
@@ -158,11 +158,15 @@ def correct_fleet(
     keyframes = {r: kfs for r, kfs in keyframes.items() if r in placed and kfs}
     if reference not in keyframes:
         return FleetCorrection({}, Solution({}, np.zeros(0), 0.0))
+    from threadpoolctl import threadpool_limits
+
     frames = {r: [k.frame for k in kfs] for r, kfs in keyframes.items()}
     stamps = {r: np.array([f.stamp for f in fs]) for r, fs in frames.items()}
     poses = {r: np.stack([f.T_map_cam for f in fs]) for r, fs in frames.items()}
     pairs = overlap_pairs(overlaps, stamps)
-    closures = find_closures(frames, pairs, params.closure) + fit_closures(pairs, poses, edges)
+    with threadpool_limits(1):  # many small problems: BLAS and OpenMP threads only contend
+        closures = find_closures(frames, pairs, params.closure)
+        closures = refine_with_depth(closures, keyframes) + fit_closures(pairs, poses, edges)
     sol = optimise(poses, placed, closures, reference, params.graph)
     out = {r: _robot(stamps[r], poses[r], sol.poses[r], placed[r], params) for r in sol.poses}
     return FleetCorrection(out, sol, keyframes)

@@ -40,6 +40,8 @@ class GraphParams:
     floor_m: float = 0.002
     closure_m: float = 0.02
     closure_deg: float = 1.0
+    depth_m: float = 0.01  # a closure refined by ICP on the depth clouds
+    depth_deg: float = 0.3
     inlier_probability: float = 0.99  # GNC's chi-square inlier threshold
 
 
@@ -107,9 +109,11 @@ class FleetGraph:
                 graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), noise))
 
     def closures(self, graph, closures: list[Closure], p: GraphParams) -> None:
-        sig = np.array([np.deg2rad(p.closure_deg)] * 3 + [p.closure_m] * 3)
-        noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
         for c in closures:
+            m, deg = (
+                (p.depth_m, p.depth_deg) if c.source == "depth" else (p.closure_m, p.closure_deg)
+            )
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([np.deg2rad(deg)] * 3 + [m] * 3))
             a, b = self.node(c.robot_a, c.i), self.node(c.robot_b, c.j)
             graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(c.T_a_b), noise))
 
