@@ -144,20 +144,14 @@ class FleetCorrection:
         }
 
 
-def correct_fleet(
+def fleet_closures(
     keyframes: dict[str, list],
-    placed: dict[str, np.ndarray],
     edges: dict,
     overlaps: list[dict],
-    reference: str,
     params: CorrectionParams = CorrectionParams(),
-) -> FleetCorrection:
-    """Drift-corrected placement of every placed robot. keyframes[R]: robot R's extracted
-    keyframes in time order (`fleetmap.extract_pool.Keyframe`: frame structure with the
-    camera-to-map pose and features with 3D points, map-cloud points)."""
-    keyframes = {r: kfs for r, kfs in keyframes.items() if r in placed and kfs}
-    if reference not in keyframes:
-        return FleetCorrection({}, Solution({}, np.zeros(0), 0.0))
+) -> list[Closure]:
+    """The fleet's loop closures: verified feature closures (refined against depth where
+    ICP agrees) and the pairwise fits at the place database's overlaps."""
     from threadpoolctl import threadpool_limits
 
     frames = {r: [k.frame for k in kfs] for r, kfs in keyframes.items()}
@@ -166,7 +160,29 @@ def correct_fleet(
     pairs = overlap_pairs(overlaps, stamps)
     with threadpool_limits(1):  # many small problems: BLAS and OpenMP threads only contend
         closures = find_closures(frames, pairs, params.closure)
-        closures = refine_with_depth(closures, keyframes) + fit_closures(pairs, poses, edges)
+        return refine_with_depth(closures, keyframes) + fit_closures(pairs, poses, edges)
+
+
+def correct_fleet(
+    keyframes: dict[str, list],
+    placed: dict[str, np.ndarray],
+    edges: dict,
+    overlaps: list[dict],
+    reference: str,
+    params: CorrectionParams = CorrectionParams(),
+    closures: list[Closure] | None = None,
+) -> FleetCorrection:
+    """Drift-corrected placement of every placed robot. keyframes[R]: robot R's extracted
+    keyframes in time order (`fleetmap.extract_pool.Keyframe`: frame structure with the
+    camera-to-map pose and features with 3D points, map-cloud points); `closures`: the
+    fleet's closures when already found (`fleet_closures`)."""
+    keyframes = {r: kfs for r, kfs in keyframes.items() if r in placed and kfs}
+    if reference not in keyframes:
+        return FleetCorrection({}, Solution({}, np.zeros(0), 0.0))
+    if closures is None:
+        closures = fleet_closures(keyframes, edges, overlaps, params)
+    stamps = {r: np.array([k.frame.stamp for k in kfs]) for r, kfs in keyframes.items()}
+    poses = {r: np.stack([k.frame.T_map_cam for k in kfs]) for r, kfs in keyframes.items()}
     sol = optimise(poses, placed, closures, reference, params.graph)
     out = {r: _robot(stamps[r], poses[r], sol.poses[r], placed[r], params) for r in sol.poses}
     return FleetCorrection(out, sol, keyframes)
