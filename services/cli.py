@@ -221,6 +221,12 @@ def _merge_command(sub) -> None:
     p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
     p.add_argument("--pcd", action="store_true", help="also write merged.pcd (PCL's format)")
     p.add_argument(
+        "--correct-drift",
+        action="store_true",
+        help="optimise one pose graph over every robot's keyframes and correct maps that bend "
+        "(drift); slower: loop closures are searched in every robot",
+    )
+    p.add_argument(
         "--voxel", type=float, default=0.03, metavar="M", help="merged map voxel size (0.03 m)"
     )
     _add_robot_args(p)

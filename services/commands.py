@@ -333,6 +333,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         token=args.token,
         pcd=args.pcd,
+        correct_drift=args.correct_drift,
     )
     merged = [r for r in ids if r not in report["unmerged"]]
     print(

@@ -27,6 +27,7 @@ from fleetmap.dataset import Recording
 from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
 from fleetmap.extract_pool import extract_keyframes
+from fleetmap.fleet.correct import correct_fleet
 from fleetmap.mapcloud import MapCloud
 from fleetmap.pairs import overlaps_to_align, pair_views
 from fleetmap.placement import optimise_poses, spanning_placement
@@ -63,10 +64,13 @@ def run_merge(
     token: str | None = None,
     workers: int | None = None,
     pcd: bool = False,
+    correct_drift: bool = False,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
     overview.png and overlap_matrix.png. The place database registers the links while
-    the robots are placed and the maps written."""
+    the robots are placed and the maps written. `correct_drift`: the keyframe pose graph
+    over the fleet (`fleetmap.fleet`) corrects maps that bend (slower: it searches loop
+    closures in every robot)."""
     check_reachable(place_db, aligner, token)  # before any long work
     out.mkdir(parents=True, exist_ok=True)
     timing = dict.fromkeys(("extract", "ingest", "overlaps", "align", "outputs"), 0.0)
@@ -81,14 +85,19 @@ def run_merge(
         db = stack.enter_context(PlaceDBClient(place_db, token=token))
         al = stack.enter_context(AlignerClient(aligner, timeout=900, token=token))
         checked_vocabulary(db, vocab_path)
-        clouds = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
+        clouds, parts = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
         with timed(timing, "overlaps"):
             overlaps, by_pair = find_overlaps(db, ids)
         with timed(timing, "align"):
             edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
         with timed(timing, "outputs"):
             placed, chain, optimised, edges = place_fleet(ids, edges)
-            drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd)
+        fleet = None
+        if correct_drift:
+            with timed(timing, "fleet_graph"):
+                fleet = correct_fleet(parts, placed, edges, overlaps, ids[0])
+        with timed(timing, "outputs"):
+            drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd, fleet)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
     params = {
@@ -96,9 +105,12 @@ def run_merge(
         "max_views": max_views,
         "voxel_m": voxel,
         "pcd": pcd,
+        "correct_drift": correct_drift,
         "vocabulary": str(vocab_path) if vocab_path else "default",
     }
     report = build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params)
+    if fleet is not None:
+        add_fleet_report(report, fleet)
     with timed(timing, "outputs"):
         write_pictures(out, ids, drawing, report)
         write_fleet_mcap(out, report)  # Foxglove's schemas, from the files written
@@ -122,6 +134,15 @@ def place_fleet(ids: list[str], edges: dict) -> tuple:
     return placed, chain, optimised, edges
 
 
+def add_fleet_report(report: dict, fleet) -> None:
+    """The fleet graph's figures; per robot the best rigid T_ref_R of its corrected map and
+    how far the drift correction moved it."""
+    report["fleet_graph"] = fleet.summary()
+    for r, c in fleet.robots.items():
+        report["transforms"][r] = c.rigid.tolist()
+        report["robots"][r]["drift_correction"] = c.summary()
+
+
 def checked_vocabulary(client: PlaceDBClient, path):
     """The vocabulary to extract with: the place database's must be the same."""
     vocab = load_vocabulary(path)
@@ -136,9 +157,10 @@ def checked_vocabulary(client: PlaceDBClient, path):
 
 def ingest(
     keyframes, db, total: int, timing: dict, quiet: bool, in_flight: int = 8
-) -> dict[str, MapCloud]:
+) -> tuple[dict[str, MapCloud], dict[str, list]]:
     """POST every extracted keyframe, up to `in_flight` at once (the place database commits
-    concurrent keyframes together); returns each robot's map cloud (all keyframes).
+    concurrent keyframes together); returns each robot's map cloud (all keyframes) and its
+    keyframes in time order.
 
     timing["extract"]: time spent waiting for the extraction workers; timing["ingest"]:
     from the last keyframe extracted to the last one acknowledged."""
@@ -161,7 +183,7 @@ def ingest(
             bar.update()
         timing["ingest"] = time.perf_counter() - t
     bar.close()
-    return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}
+    return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}, parts
 
 
 def find_overlaps(db, ids: list[str]) -> tuple[list[dict], dict]:

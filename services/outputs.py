@@ -35,10 +35,12 @@ class Drawing:
 
 
 def write_maps(
-    out: Path, recs, kf_index, clouds, placed, edges, voxel: float = 0.03, pcd: bool = False
+    out: Path, recs, kf_index, clouds, placed, edges, voxel=0.03, pcd=False, fleet=None
 ) -> Drawing:
     """merged.ply (image colour, per-point robot index), trajectories of every frame and
-    pose_graph.g2o; returns what the pictures need."""
+    pose_graph.g2o; returns what the pictures need. With `fleet`
+    (`fleetmap.fleet.correct.FleetCorrection`), a drift-corrected robot's cloud and poses
+    are its corrected ones and pose_graph.g2o is the keyframe graph."""
     (out / "trajectories").mkdir(exist_ok=True)
     d, cols, robot_idx = Drawing(), [], []
     ref = recs[0].robot_id
@@ -46,26 +48,39 @@ def write_maps(
         rid = rec.robot_id
         if rid not in placed:
             continue
-        T = placed[rid]
-        p, c = clouds[rid].voxelised(voxel)
-        d.points.append(apply(T, p))
+        T = placed[rid] if fleet is None else fleet.rigid(rid, placed[rid])
+        pose = _frame_poses(rid, T, fleet)
+        corrected = fleet is not None and rid in fleet.robots and fleet.robots[rid].applied
+        p, c = (fleet.cloud(rid) if corrected else clouds[rid]).voxelised(voxel)
+        d.points.append(p if corrected else apply(T, p))
         cols.append(c)
         robot_idx.append(np.full(len(p), k, np.uint16))
         d.names.append(rid)
         d.colours.append(ROBOT_COLOURS[k % len(ROBOT_COLOURS)])
         kfs = [rec.frames[i] for i in kf_index[rid]]
-        poses = [T @ f.T_map_cam for f in kfs]
+        poses = [pose(f) for f in kfs]
         d.tracks[rid] = np.array([P[:3, 3] for P in poses])
         d.downs.extend(P[:3, 1] for P in poses)
         d.positions[rid] = {round(f.stamp, 6): P[:3, 3] for f, P in zip(kfs, poses, strict=True)}
-        _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, T, ref)
+        _write_trajectory(out / "trajectories" / f"{rid}.txt", rec, pose, ref)
     if d.points:
         pts, col, idx = np.concatenate(d.points), np.concatenate(cols), np.concatenate(robot_idx)
         write_ply(out / "merged.ply", pts, col, robot=idx)
         if pcd:
             write_pcd(out / "merged.pcd", pts, col, idx)
-    write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
+    if fleet is not None and any(c.applied for c in fleet.robots.values()):
+        fleet.solution.write_g2o(out / "pose_graph.g2o")  # the keyframe graph
+    else:
+        write_g2o(out / "pose_graph.g2o", [r.robot_id for r in recs], placed, edges)
     return d
+
+
+def _frame_poses(rid: str, T_ref_map: np.ndarray, fleet):
+    """A frame's camera pose in the reference frame: drift-corrected, or rigidly placed."""
+    corr = fleet.robots.get(rid) if fleet is not None else None
+    if corr is not None and corr.applied:
+        return lambda f: corr.frame_pose(f.stamp, f.T_map_cam)
+    return lambda f: T_ref_map @ f.T_map_cam
 
 
 def write_pictures(out: Path, ids: list[str], d: Drawing, report: dict) -> None:
@@ -85,13 +100,9 @@ def write_pictures(out: Path, ids: list[str], d: Drawing, report: dict) -> None:
     pictures.overlap_matrix(out / "overlap_matrix.png", ids, report)
 
 
-def _write_trajectory(path: Path, rec: Recording, T_ref_map: np.ndarray, ref: str) -> None:
-    """Every frame's camera pose in the global frame, TUM format."""
-    rows = [
-        [f.stamp, *pose_to_tum(T_ref_map @ f.T_map_cam)]
-        for f in rec.frames
-        if f.T_map_cam is not None
-    ]
+def _write_trajectory(path: Path, rec: Recording, pose, ref: str) -> None:
+    """Every frame's camera pose in the global frame (`pose(frame)`), TUM format."""
+    rows = [[f.stamp, *pose_to_tum(pose(f))] for f in rec.frames if f.T_map_cam is not None]
     write_tum(path, rows, ref)
 
 

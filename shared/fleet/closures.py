@@ -1,0 +1,153 @@
+"""Loop closures of the fleet graph: keyframe pairs that see the same place, within one
+robot (a revisit) or between two, each with the relative pose of its cameras.
+
+Candidates: the place database's verified overlaps, plus each keyframe's nearest GISTs
+among all keyframes (the cascade's first stage; for one robot only keyframes at least
+`min_gap` keyframes apart, so that a closure is not just odometry). Each candidate is
+verified (`fleetmap.matching.verify_pair`, epipolar and rigid checks) and its relative pose
+fitted by RANSAC over the matched features' 3D points in each camera's frame, which no
+drift of the robots' maps affects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fleetmap.frame import Frame
+from fleetmap.geometry import apply, invert
+from fleetmap.matching import DEFAULT_MATCH_PARAMS, match_descriptors, verify_pair
+from fleetmap.registration import ransac_rigid
+
+
+@dataclass(frozen=True)
+class ClosureParams:
+    """Verification of a closure. The 3D tolerance is a few times a structured-light or
+    time-of-flight camera's depth noise at 2-3 m (about 1 cm); `min_inliers` asks for
+    twice the place database's rigid check (`MatchParams.min_rigid_inliers`)."""
+
+    tol_m: float = 0.03
+    min_inliers: int = 12
+    neighbours: int = 3  # GIST candidates per keyframe
+    min_gap: int = 10  # keyframes between a robot's two ends of a revisit
+
+
+@dataclass(frozen=True)
+class Closure:
+    """Camera j of robot_b seen from camera i of robot_a: T_a_b maps points of camera j's
+    frame into camera i's (4x4). `source`: "features" (3D-3D matches) or "fit" (the
+    robots' pairwise fit at this keyframe pair)."""
+
+    robot_a: str
+    i: int
+    robot_b: str
+    j: int
+    T_a_b: np.ndarray
+    inliers: int
+    source: str = "features"
+
+
+def camera_points(f: Frame) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's feature points of shape (N, 3) in its camera's frame, and their mask."""
+    if f.points is None or f.T_map_cam is None:
+        return np.zeros((len(f.keypoints), 3)), np.zeros(len(f.keypoints), bool)
+    return apply(invert(f.T_map_cam), f.points.astype(np.float64)), f.point_valid
+
+
+def relative_pose(
+    fa: Frame, fb: Frame, params: ClosureParams = ClosureParams()
+) -> tuple[np.ndarray, int] | None:
+    """(T_cama_camb of shape (4, 4), inliers) from the two frames' matched features with
+    depth, or None when the pair does not verify. The rigid RANSAC over the matches' 3D
+    points runs first (cheap, and most candidates fail it); the survivors must also pass
+    the epipolar verification of the place database."""
+    pa, va = camera_points(fa)
+    pb, vb = camera_points(fb)
+    ia, ib = match_descriptors(fa.descriptors, fb.descriptors, DEFAULT_MATCH_PARAMS.ratio)
+    both = va[ia] & vb[ib]
+    if both.sum() < params.min_inliers:
+        return None
+    T, inl = ransac_rigid(pb[ib[both]], pa[ia[both]], params.tol_m)
+    if inl.sum() < params.min_inliers:
+        return None
+    ver = verify_pair(
+        fa.keypoints, fa.descriptors, fb.keypoints, fb.descriptors, points_a=(pa, va),
+        points_b=(pb, vb), matches=(ia, ib),
+    )  # fmt: skip
+    return (T, int(inl.sum())) if ver.verified else None
+
+
+def gist_candidates(
+    frames: dict[str, list[Frame]], params: ClosureParams = ClosureParams()
+) -> set[tuple[str, int, str, int]]:
+    """Keyframe pairs (robot_a, i, robot_b, j) among each keyframe's `neighbours` most
+    similar GISTs (cosine) in every robot, its own keyframes only `min_gap` apart."""
+    keys = [(r, i) for r, fs in frames.items() for i in range(len(fs))]
+    if len(keys) < 2:
+        return set()
+    G = np.stack([frames[r][i].gist.astype(np.float32) for r, i in keys])
+    G /= np.maximum(np.linalg.norm(G, axis=1, keepdims=True), 1e-12)
+    sim = G @ G.T
+    code = {r: k for k, r in enumerate(frames)}
+    robot = np.array([code[r] for r, _ in keys])
+    index = np.array([i for _, i in keys])
+    same = robot[:, None] == robot[None, :]
+    sim[same & (np.abs(index[:, None] - index[None, :]) < params.min_gap)] = -np.inf
+    out = set()
+    for a in range(len(keys)):
+        for r in code.values():  # the nearest of every robot, own revisits included
+            cols = np.flatnonzero(robot == r)
+            row = sim[a, cols]
+            for b in cols[np.argsort(-row)[: params.neighbours]]:
+                if np.isfinite(sim[a, b]):
+                    pair = sorted((keys[a], keys[int(b)]))
+                    out.add((pair[0][0], pair[0][1], pair[1][0], pair[1][1]))
+    return out
+
+
+def find_closures(
+    frames: dict[str, list[Frame]],
+    pairs: set[tuple[str, int, str, int]],
+    params: ClosureParams = ClosureParams(),
+) -> list[Closure]:
+    """The verified closures among `pairs` (robot_a, i, robot_b, j) and the GIST
+    candidates."""
+    out = []
+    for ra, i, rb, j in sorted(pairs | gist_candidates(frames, params)):
+        fit = relative_pose(frames[ra][i], frames[rb][j], params)
+        if fit is not None:
+            out.append(Closure(ra, i, rb, j, fit[0], fit[1]))
+    return out
+
+
+def refine_with_depth(
+    closures: list[Closure], keyframes: dict[str, list], params: ClosureParams = ClosureParams()
+) -> list[Closure]:
+    """Each feature closure refined by point-to-plane ICP between its two keyframes' depth
+    clouds (in the cameras' frames), kept where ICP overlaps well and moves the fit by less
+    than the 3D tolerance (else the feature fit stands). keyframes[R]: the extracted
+    `Keyframe`s (map-cloud points in the robot's map frame)."""
+    from fleetmap.mapcloud import MapCloud, icp
+
+    cache: dict[tuple[str, int], object] = {}
+
+    def cloud(r: str, i: int):
+        if (r, i) not in cache:
+            kf = keyframes[r][i]
+            pts = apply(invert(kf.frame.T_map_cam), kf.points.astype(np.float64))
+            cache[(r, i)] = MapCloud(pts, None).o3d(params.tol_m / 2)
+        return cache[(r, i)]
+
+    out = []
+    for c in closures:
+        if c.source == "features":
+            T, fitness, _ = icp(
+                cloud(c.robot_b, c.j), cloud(c.robot_a, c.i), c.T_a_b,
+                distances=(params.tol_m, params.tol_m / 2), iterations=30,
+            )  # fmt: skip
+            D = invert(c.T_a_b) @ T
+            if fitness >= 0.3 and np.linalg.norm(D[:3, 3]) < params.tol_m:
+                c = Closure(c.robot_a, c.i, c.robot_b, c.j, T, c.inliers, "depth")
+        out.append(c)
+    return out

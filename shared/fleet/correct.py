@@ -1,0 +1,188 @@
+"""From a rigidly placed fleet to drift-corrected trajectories and maps.
+
+The closures (3D-3D matches, and the pairwise fits at the place database's overlaps) and
+the robots' own keyframe poses go into the fleet graph (`fleetmap.fleet.graph`). A robot's
+correction is applied only when it bends its map beyond the closures' noise (`min_bend_m`,
+two closure sigmas): below that, the graph has seen no drift it could tell from noise and
+the rigid placement stands, so a fleet without drift is merged as before.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fleetmap.fleet.closures import Closure, ClosureParams, find_closures, refine_with_depth
+from fleetmap.fleet.graph import GraphParams, Solution, optimise
+from fleetmap.geometry import apply, invert
+from fleetmap.mapcloud import MapCloud
+from fleetmap.registration import kabsch
+
+
+@dataclass(frozen=True)
+class CorrectionParams:
+    graph: GraphParams = field(default_factory=GraphParams)
+    closure: ClosureParams = field(default_factory=ClosureParams)
+    min_bend_m: float = 0.04
+
+
+@dataclass
+class RobotCorrection:
+    """One robot's keyframes before (camera-to-map, (K, 4, 4)) and after (camera to the
+    reference's map, (K, 4, 4)), their stamps (K,), the best rigid T_ref_R and how far the
+    correction moved the keyframes from the rigid placement (metres)."""
+
+    stamps: np.ndarray
+    T_map_kf: np.ndarray
+    T_ref_kf: np.ndarray
+    rigid: np.ndarray
+    applied: bool
+    moved: np.ndarray
+    bend_m: float
+    placed: np.ndarray
+    flagged: bool = False
+
+    def T_ref_map(self, k: int) -> np.ndarray:
+        """Keyframe k's own map-to-reference transform (its neighbourhood's placement)."""
+        return self.T_ref_kf[k] @ invert(self.T_map_kf[k])
+
+    def nearest(self, stamp: float) -> int:
+        return int(np.abs(self.stamps - stamp).argmin())
+
+    def frame_pose(self, stamp: float, T_map_cam: np.ndarray) -> np.ndarray:
+        """A frame's corrected camera pose: the nearest keyframe's corrected pose and the
+        robot's own relative motion from it."""
+        return self.T_ref_map(self.nearest(stamp)) @ T_map_cam
+
+    def summary(self) -> dict:
+        return {
+            "applied": self.applied,
+            "moved_median_m": round(float(np.median(self.moved)), 4),
+            "moved_max_m": round(float(self.moved.max()), 4),
+            "bend_m": round(self.bend_m, 4),
+            "flagged": self.flagged,
+            "rigid_placement": self.placed.tolist(),  # T_ref_R before the correction
+        }
+
+
+def overlap_pairs(overlaps: list[dict], stamps: dict[str, np.ndarray]):
+    """The overlaps as keyframe index pairs (robot_a, i, robot_b, j)."""
+    out = set()
+    for o in overlaps:
+        a, b = o["robot_a"], o["robot_b"]
+        if a in stamps and b in stamps:
+            i = int(np.abs(stamps[a] - o["stamp_a"]).argmin())
+            j = int(np.abs(stamps[b] - o["stamp_b"]).argmin())
+            out.add((a, i, b, j))
+    return out
+
+
+def fit_closures(pairs, poses: dict[str, np.ndarray], edges: dict) -> list[Closure]:
+    """Each pairwise fit as a closure at each overlap of its pair: the keyframes' relative
+    pose that the fit T_a_b implies there."""
+    out = []
+    for a, i, b, j in pairs:
+        if (a, b) in edges:
+            T_a_b, n = edges[(a, b)]["T_a_b"], edges[(a, b)]["inliers"]
+        elif (b, a) in edges:
+            T_a_b, n = invert(edges[(b, a)]["T_a_b"]), edges[(b, a)]["inliers"]
+        else:
+            continue
+        T = invert(poses[a][i]) @ T_a_b @ poses[b][j]
+        out.append(Closure(a, i, b, j, T, int(n), "fit"))
+    return out
+
+
+def drift_bound(T_map_kf: np.ndarray, p: GraphParams) -> float:
+    """The largest displacement the drift model allows over the robot's path (metres)."""
+    L = float(np.linalg.norm(np.diff(T_map_kf[:, :3, 3], axis=0), axis=1).sum())
+    return p.scale * L + np.deg2rad(p.yaw_deg_per_m) * L * L / 2
+
+
+def _robot(stamps, T_map, T_ref, T_placed, params: CorrectionParams) -> RobotCorrection:
+    p_map, p_ref = T_map[:, :3, 3], T_ref[:, :3, 3]
+    rigid = kabsch(p_map, p_ref) if len(p_map) >= 3 else T_ref[0] @ invert(T_map[0])
+    bend = float(np.linalg.norm(apply(rigid, p_map) - p_ref, axis=1).max())
+    applied = bend >= params.min_bend_m
+    if not applied:
+        T_ref, rigid = T_placed @ T_map, T_placed
+    moved = np.linalg.norm(T_ref[:, :3, 3] - apply(T_placed, p_map), axis=1)
+    flagged = bool(moved.max() > drift_bound(T_map, params.graph) + params.min_bend_m)
+    return RobotCorrection(stamps, T_map, T_ref, rigid, applied, moved, bend, T_placed, flagged)
+
+
+@dataclass
+class FleetCorrection:
+    """The corrected fleet: per robot its correction; the optimised graph."""
+
+    robots: dict[str, RobotCorrection]
+    solution: Solution
+    keyframes: dict[str, list] = field(default_factory=dict)
+
+    def cloud(self, robot: str) -> MapCloud:
+        """Robot's map cloud in the reference frame, each keyframe's points by its own
+        corrected placement."""
+        c, kfs = self.robots[robot], self.keyframes[robot]
+        pts = [apply(c.T_ref_map(k), kf.points.astype(np.float64)) for k, kf in enumerate(kfs)]
+        return MapCloud(np.concatenate(pts), np.concatenate([kf.colours for kf in kfs]))
+
+    def rigid(self, robot: str, T_ref_robot: np.ndarray) -> np.ndarray:
+        """T_ref_R: the best rigid approximation of the corrected map, else as placed."""
+        return self.robots[robot].rigid if robot in self.robots else T_ref_robot
+
+    def summary(self) -> dict:
+        sol = self.solution
+        kinds = [c.source for c in sol.closures]
+        return {
+            "keyframes": int(sum(len(c.stamps) for c in self.robots.values())),
+            "closures": {k: kinds.count(k) for k in ("features", "depth", "fit")},
+            "intra_robot": sum(c.robot_a == c.robot_b for c in sol.closures),
+            "rejected": int((sol.weights < 0.5).sum()),
+            "optimise_s": round(sol.seconds, 3),
+            "applied": sorted(r for r, c in self.robots.items() if c.applied),
+        }
+
+
+def fleet_closures(
+    keyframes: dict[str, list],
+    edges: dict,
+    overlaps: list[dict],
+    params: CorrectionParams = CorrectionParams(),
+) -> list[Closure]:
+    """The fleet's loop closures: verified feature closures (refined against depth where
+    ICP agrees) and the pairwise fits at the place database's overlaps."""
+    from threadpoolctl import threadpool_limits
+
+    frames = {r: [k.frame for k in kfs] for r, kfs in keyframes.items()}
+    stamps = {r: np.array([f.stamp for f in fs]) for r, fs in frames.items()}
+    poses = {r: np.stack([f.T_map_cam for f in fs]) for r, fs in frames.items()}
+    pairs = overlap_pairs(overlaps, stamps)
+    with threadpool_limits(1):  # many small problems: BLAS and OpenMP threads only contend
+        closures = find_closures(frames, pairs, params.closure)
+        return refine_with_depth(closures, keyframes) + fit_closures(pairs, poses, edges)
+
+
+def correct_fleet(
+    keyframes: dict[str, list],
+    placed: dict[str, np.ndarray],
+    edges: dict,
+    overlaps: list[dict],
+    reference: str,
+    params: CorrectionParams = CorrectionParams(),
+    closures: list[Closure] | None = None,
+) -> FleetCorrection:
+    """Drift-corrected placement of every placed robot. keyframes[R]: robot R's extracted
+    keyframes in time order (`fleetmap.extract_pool.Keyframe`: frame structure with the
+    camera-to-map pose and features with 3D points, map-cloud points); `closures`: the
+    fleet's closures when already found (`fleet_closures`)."""
+    keyframes = {r: kfs for r, kfs in keyframes.items() if r in placed and kfs}
+    if reference not in keyframes:
+        return FleetCorrection({}, Solution({}, np.zeros(0), 0.0))
+    if closures is None:
+        closures = fleet_closures(keyframes, edges, overlaps, params)
+    stamps = {r: np.array([k.frame.stamp for k in kfs]) for r, kfs in keyframes.items()}
+    poses = {r: np.stack([k.frame.T_map_cam for k in kfs]) for r, kfs in keyframes.items()}
+    sol = optimise(poses, placed, closures, reference, params.graph)
+    out = {r: _robot(stamps[r], poses[r], sol.poses[r], placed[r], params) for r in sol.poses}
+    return FleetCorrection(out, sol, keyframes)
