@@ -38,6 +38,7 @@ from fleetmap.vocabulary import load_vocabulary
 
 log = logging.getLogger(__name__)
 
+STAGES = ("extract", "ingest", "overlaps", "align", "outputs")  # report.json's timing_s
 OVERLAP_KEYS = ("robot_a", "stamp_a", "robot_b", "stamp_b", "inliers", "source")
 
 
@@ -67,14 +68,13 @@ def run_merge(
     correct_drift: bool = False,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
-    overview.png and overlap_matrix.png. The place database registers the links while
-    the robots are placed and the maps written. `correct_drift`: the keyframe pose graph
-    over the fleet (`fleetmap.fleet`) corrects maps that bend (slower: it searches loop
-    closures in every robot)."""
+    overview.png, overlap_matrix.png, fleet.mcap. The place database registers the links
+    while the robots are placed and the maps written. `correct_drift`: the keyframe pose
+    graph over the fleet (`fleetmap.fleet`) corrects maps that bend (loop closures searched
+    in every robot: slower)."""
     check_reachable(place_db, aligner, token)  # before any long work
     out.mkdir(parents=True, exist_ok=True)
-    timing = dict.fromkeys(("extract", "ingest", "overlaps", "align", "outputs"), 0.0)
-    t_all = time.perf_counter()
+    timing, t_all = dict.fromkeys(STAGES, 0.0), time.perf_counter()
     kf_index = {r.robot_id: keyframe_indices(r, policy) for r in recs}
     ids = [r.robot_id for r in recs]
     with contextlib.ExitStack() as stack:
@@ -92,22 +92,16 @@ def run_merge(
             edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
         with timed(timing, "outputs"):
             placed, chain, optimised, edges = place_fleet(ids, edges)
-        fleet = None
-        if correct_drift:
-            with timed(timing, "fleet_graph"):
-                fleet = correct_fleet(parts, placed, edges, overlaps, ids[0])
+        with timed(timing, "fleet_graph"):
+            fleet = correct_fleet(parts, placed, edges, overlaps, ids[0]) if correct_drift else None
         with timed(timing, "outputs"):
             drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd, fleet)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
     params = {
         "keyframes": dataclasses.asdict(policy) if dataclasses.is_dataclass(policy) else None,
-        "max_views": max_views,
-        "voxel_m": voxel,
-        "pcd": pcd,
-        "correct_drift": correct_drift,
         "vocabulary": str(vocab_path) if vocab_path else "default",
-    }
+    } | {"max_views": max_views, "voxel_m": voxel, "pcd": pcd, "correct_drift": correct_drift}
     report = build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params)
     if fleet is not None:
         add_fleet_report(report, fleet)
