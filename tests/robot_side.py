@@ -37,6 +37,7 @@ SERVER_IMPORTS: dict[str, tuple[str, ...]] = {
     "mcap": ("mcap",),
     "mcap-protobuf-support": ("mcap_protobuf",),
     "foxglove-schemas-protobuf": ("foxglove_schemas_protobuf",),
+    "gtsam": ("gtsam",),
 }
 BLOCKED = tuple(name for names in SERVER_IMPORTS.values() for name in names)
 
