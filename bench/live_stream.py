@@ -31,8 +31,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from real_pairs import DATA, _mean_disp, cases, every_nth_views, random_frame, write_cut  # noqa: E402
+from real_pairs import DATA, _mean_disp, cases, every_nth_views, random_frame  # noqa: E402
 
+from fleetmap.dataset import cut_recording  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
 from tests.servers import Service  # noqa: E402
 
@@ -46,7 +47,7 @@ def prepare(case: list, work: Path, rng, isolated: bool, data: Path):
     dirs, frames = [], {}
     for name, src, sl, T_common_src in case:
         M = random_frame(rng)
-        write_cut(src, sl, work / name, M)
+        cut_recording(src, sl, work / name, M)
         frames[name] = None if T_common_src is None else M @ np.linalg.inv(T_common_src)
         dirs.append(f"{name}={work / name}")
     return dirs, frames

@@ -57,11 +57,6 @@ def random_frame(rng: np.random.Generator) -> np.ndarray:
     return T
 
 
-def write_cut(src: Path, frames: slice, dst: Path, T_new_old: np.ndarray) -> None:
-    """A robot folder of `src`'s frames[frames], its poses moved by T_new_old."""
-    cut_recording(src, frames, dst, T_new_old)
-
-
 def cases(data: Path) -> dict[str, list[tuple[str, Path, slice, np.ndarray]]]:
     """name -> robots as (name, source folder, frame range, T_source_srcmap) where the
     source map is a common frame per case (A's for two-folder sets)."""
@@ -124,7 +119,7 @@ def run_case(name: str, robots, work: Path, seeds: int, rng) -> list[dict]:
     for rname, src, sl, T_common_src in robots:
         M = random_frame(rng)  # robot map <- source map
         d = work / name / rname
-        write_cut(src, sl, d, M)
+        cut_recording(src, sl, d, M)
         frames[rname] = None if T_common_src is None else M @ np.linalg.inv(T_common_src)
         dirs.append(f"{rname}={d}")
     out = work / f"{name}-out"

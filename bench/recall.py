@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_pairs import ROOT, _mean_disp, every_nth_views, random_frame, write_cut  # noqa: E402
+from real_pairs import ROOT, _mean_disp, every_nth_views, random_frame  # noqa: E402
 
 from fleetmap.align import fpfh_ransac_icp  # noqa: E402
-from fleetmap.dataset import read_recording  # noqa: E402
+from fleetmap.dataset import cut_recording, read_recording  # noqa: E402
 from fleetmap.geometry import apply  # noqa: E402
 from fleetmap.lazy import LazyModule  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
@@ -141,7 +141,7 @@ def run_pair(k: int, pair: dict, specs: dict, work: Path, seeds: int, rng) -> di
     dirs, M = [], {}
     for r, (_, folder, sl) in (("A", pair["a"]), ("B", pair["b"])):
         M[r] = random_frame(rng)  # robot map <- folder's map
-        write_cut(folder, sl, work / f"p{k}" / r, M[r])
+        cut_recording(folder, sl, work / f"p{k}" / r, M[r])
         dirs.append(f"{r}={work / f'p{k}' / r}")
     out = work / f"p{k}-out"
     t = time.perf_counter()

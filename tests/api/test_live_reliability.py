@@ -57,6 +57,13 @@ def post(client, robot: str, frame: bytes, view: dict) -> int:
     return r.status_code
 
 
+def post_bundled_pair(client, vocabulary) -> None:
+    """alpha's and bravo's keyframes with their views, both in their own map frames."""
+    for robot in ("alpha", "bravo"):
+        for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
+            post(client, robot, frame, view)
+
+
 def real_align(calls: list):
     def align(pairs):
         calls.append(len(pairs))
@@ -76,9 +83,7 @@ def test_a_deleted_robot_comes_back_fresh(settings, vocabulary):
     T_ab = np.loadtxt(EXAMPLE / "T_alpha_bravo.txt")
     app, calls = create_app(settings), []
     with TestClient(app) as client:
-        for robot in ("alpha", "bravo"):
-            for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
-                post(client, robot, frame, view)
+        post_bundled_pair(client, vocabulary)
         assert client.get("/overlaps", params={"wait": 60}).json()["graph"]
         live = LiveMap(app.state.db, real_align(calls), LiveParams(settle_s=3600))
         assert live.tick() is True
@@ -109,9 +114,7 @@ def test_a_robot_posting_copies_moves_no_one(settings, vocabulary):
     T_ab = np.loadtxt(EXAMPLE / "T_alpha_bravo.txt")
     app, calls = create_app(settings), []
     with TestClient(app) as client:
-        for robot in ("alpha", "bravo"):
-            for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
-                post(client, robot, frame, view)
+        post_bundled_pair(client, vocabulary)
         copies = robot_keyframes(vocabulary, "alpha", np.eye(4))
         copies += robot_keyframes(vocabulary, "bravo", moved(90, 5.0))
         for k, (frame, view) in enumerate(copies):
@@ -137,9 +140,7 @@ def test_a_robot_flooding_copies_starves_no_pair(settings, vocabulary):
     the first step and the flooding robot never reaches the aligner."""
     app, calls = create_app(settings), []
     with TestClient(app) as client:
-        for robot in ("alpha", "bravo"):
-            for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
-                post(client, robot, frame, view)
+        post_bundled_pair(client, vocabulary)
         copy, view = robot_keyframes(vocabulary, "alpha", np.eye(4))[0]
         live = LiveMap(app.state.db, real_align(calls), LiveParams(settle_s=3600))
         for k in range(4):  # a few more copies before every step of the worker

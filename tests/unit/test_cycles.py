@@ -9,19 +9,12 @@ from scipy.spatial.transform import Rotation
 
 from fleetmap.cycles import CycleParams, disagreeing
 from fleetmap.placement import spanning_placement
-
-
-def rigid(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
-    T[:3, 3] = rng.uniform(-5, 5, 3)
-    return T
+from tests.conftest import random_frame
 
 
 def fleet(noise_m: float = 0.0):
     """Four robots' true frames in A's, and the fits of every pair (noisy by noise_m)."""
-    truth = {"A": np.eye(4), "B": rigid(1), "C": rigid(2), "D": rigid(3)}
+    truth = {"A": np.eye(4), "B": random_frame(1), "C": random_frame(2), "D": random_frame(3)}
     rng = np.random.default_rng(7)
     edges = {}
     for a, b, inliers in (("A", "B", 52), ("B", "C", 300), ("A", "C", 200), ("C", "D", 90)):
