@@ -1,16 +1,23 @@
-"""The services started by the CLI itself when no URL is given: the place database as a
-child process (its overlap worker gets a core and an interpreter lock of its own), the
-aligner in a thread of this process; both on free loopback ports, stopped at the end."""
+"""The services started by the CLI itself when no URL is given: both in threads of this
+process (`embedded_service`), on free loopback ports, stopped at the end. A child process
+for the place database bought nothing measurable (its overlap worker's own interpreter
+lock) and cost a second interpreter's start and imports: 2.5-8 s before the first keyframe
+could be posted, on the critical path of every merge (issue 23).
+
+Both come up in the background: `start_services` returns their URLs at once, and the job
+waits for one (`Services.ready`) only when it first needs it, so their start-up overlaps
+the keyframe extraction instead of holding it up (the aligner is not needed before the
+overlaps are known)."""
 
 from __future__ import annotations
 
 import contextlib
 import importlib
 import socket
-import subprocess
-import sys
 import tempfile
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from fleetmap.client import AlignerClient, PlaceDBClient
@@ -23,66 +30,76 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@contextlib.contextmanager
-def embedded_service(kind: str, data_dir: Path | None = None):
-    """A service on a free loopback port in a background thread; yields its URL."""
-    import uvicorn
+@dataclass
+class Services:
+    """The service URLs of a job; `ready(kind)` blocks until that one answers /healthz
+    (at once for a service given by URL, checked before any long work)."""
 
+    place_db: str
+    aligner: str
+    waits: dict[str, Callable[[], None]] = field(default_factory=dict)
+
+    def ready(self, kind: str) -> str:
+        """Wait for "place-db" or "aligner" to be up; its URL."""
+        wait = self.waits.pop(kind, None)
+        if wait is not None:
+            wait()
+        return self.place_db if kind == "place-db" else self.aligner
+
+
+def _app(kind: str, data_dir: Path | None):
     if kind == "place-db":
         from fleetmap.services.place_db.config import Settings
         from fleetmap.services.place_db.main import create_app
 
-        app = create_app(Settings(data_dir=data_dir) if data_dir else Settings(), announce=False)
-    else:
-        from fleetmap.services.aligner.main import create_app as create_aligner
+        return create_app(Settings(data_dir=data_dir) if data_dir else Settings(), announce=False)
+    from fleetmap.services.aligner.main import create_app as create_aligner
 
-        app = create_aligner(announce=False)  # on loopback, for this command only
-    port = _free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, name=f"embedded-{kind}", daemon=True)
-    thread.start()
-    url = f"http://127.0.0.1:{port}"
-    client = PlaceDBClient(url)
-    try:
-        client.wait_ready(60)
-        yield url
-    finally:
-        client.close()
-        server.should_exit = True
-        thread.join(30)
+    return create_aligner(announce=False)  # on loopback, for this command only
 
 
 @contextlib.contextmanager
-def embedded_process(kind: str, data_dir: Path | None = None):
-    """A service as a child process on a free loopback port; yields its URL. The place
-    database runs so: its overlap worker then has a core (and an interpreter lock) of its
-    own while this process posts keyframes."""
+def embedded_service(kind: str, data_dir: Path | None = None):
+    """A service on a free loopback port in a background thread, which also imports and
+    builds the app; yields (URL, wait until ready)."""
     port = _free_port()
-    cmd = [sys.executable, "-m", "fleetmap.services.cli", "serve", kind, "--port", str(port)]
-    if data_dir is not None:
-        cmd += ["--data-dir", str(data_dir)]
     url = f"http://127.0.0.1:{port}"
-    with tempfile.TemporaryFile() as errors:
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=errors)
-        client = PlaceDBClient(url)
+    built, box = threading.Event(), {}
+
+    def run() -> None:
         try:
-            try:
-                client.wait_ready(60, alive=lambda: proc.poll() is None, poll_s=0.05)
-            except Unavailable:
-                if proc.poll() is None:
-                    raise
-                errors.seek(0)
-                tail = errors.read().decode(errors="replace").strip().splitlines()[-1:]
-                raise Unavailable(f"embedded {kind} exited ({proc.returncode}): {tail}") from None
-            yield url
+            import uvicorn
+
+            app = _app(kind, data_dir)
+            config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
+            box["server"] = uvicorn.Server(config)
+        except Exception as exc:  # raised by wait(), in the job's thread
+            box["error"] = exc
+            return
         finally:
-            client.close()
-            proc.terminate()
-            try:
-                proc.wait(30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            built.set()
+        box["server"].run()
+
+    thread = threading.Thread(target=run, name=f"embedded-{kind}", daemon=True)
+    thread.start()
+    client = PlaceDBClient(url)
+
+    def wait() -> None:
+        try:
+            client.wait_ready(60, alive=thread.is_alive, poll_s=0.05)
+        except Unavailable:
+            if "error" in box:
+                raise Unavailable(f"embedded {kind} failed: {box['error']}") from box["error"]
+            raise
+
+    try:
+        yield url, wait
+    finally:
+        client.close()
+        built.wait(60)
+        if "server" in box:
+            box["server"].should_exit = True
+        thread.join(30)
 
 
 def check_reachable(place_db: str | None, aligner: str | None, token: str | None) -> None:
@@ -94,17 +111,24 @@ def check_reachable(place_db: str | None, aligner: str | None, token: str | None
 
 
 def start_services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | None):
-    """The given service URLs, or both services embedded on free loopback ports."""
+    """`Services`: the given service URLs, or both services starting on free loopback
+    ports in the background (wait with `Services.ready`)."""
+    waits = {}
     if place_db is None:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
-        place_db = stack.enter_context(embedded_process("place-db", tmp))
+        place_db, waits["place-db"] = stack.enter_context(embedded_service("place-db", tmp))
     if aligner is None:
-        aligner = stack.enter_context(embedded_service("aligner"))
-        # Open3D and the MLP's torch (1.6 s to import) load while the robots are ingested
-        threading.Thread(target=_warm_up, args=("open3d", "torch"), daemon=True).start()
-    return place_db, aligner
+        aligner, waits["aligner"] = stack.enter_context(embedded_service("aligner"))
+    return Services(place_db, aligner, waits)
 
 
-def _warm_up(*modules: str) -> None:
+def warm_up(*modules: str) -> threading.Thread:
+    """Import `modules` in a background thread (where a core would otherwise wait)."""
+    thread = threading.Thread(target=_import, args=modules, name="warm-up", daemon=True)
+    thread.start()
+    return thread
+
+
+def _import(*modules: str) -> None:
     for name in modules:
         importlib.import_module(name)

@@ -31,7 +31,7 @@ from fleetmap.fleet.correct import correct_fleet
 from fleetmap.mapcloud import MapCloud
 from fleetmap.pairs import overlaps_to_align, pair_views
 from fleetmap.placement import optimise_poses, spanning_placement
-from fleetmap.services.embedded import check_reachable, start_services
+from fleetmap.services.embedded import check_reachable, start_services, warm_up
 from fleetmap.services.foxglove import write_fleet_mcap
 from fleetmap.services.outputs import build_report, write_maps, write_pictures
 from fleetmap.vocabulary import load_vocabulary
@@ -80,16 +80,19 @@ def run_merge(
     with contextlib.ExitStack() as stack:
         keyframes = extract_keyframes(recs, kf_index, vocab_path, workers)  # runs meanwhile
         stack.callback(keyframes.close)
-        with timed(timing, "start"):
-            place_db, aligner = start_services(stack, place_db, aligner)
-        db = stack.enter_context(PlaceDBClient(place_db, token=token))
-        al = stack.enter_context(AlignerClient(aligner, timeout=900, token=token))
+        with timed(timing, "start"):  # the time the job waited for its services
+            services = start_services(stack, place_db, aligner)  # they come up meanwhile
+            db = stack.enter_context(PlaceDBClient(services.ready("place-db"), token=token))
         checked_vocabulary(db, vocab_path)
         clouds, parts = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
         with timed(timing, "overlaps"):
             overlaps, by_pair = find_overlaps(db, ids)
+        with timed(timing, "start"):
+            al = AlignerClient(services.ready("aligner"), timeout=900, token=token)
+            stack.enter_context(al)
         with timed(timing, "align"):
             edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
+        warm = warm_up("matplotlib.pyplot", "mcap_protobuf.writer")  # imported while linking
         with timed(timing, "outputs"):
             placed, chain, optimised, edges = place_fleet(ids, edges)
         with timed(timing, "fleet_graph"):
@@ -106,6 +109,7 @@ def run_merge(
     if fleet is not None:
         add_fleet_report(report, fleet)
     with timed(timing, "outputs"):
+        warm.join()  # matplotlib must not be half imported when the pictures select Agg
         write_pictures(out, ids, drawing, report)
         write_fleet_mcap(out, report)  # Foxglove's schemas, from the files written
     timing["total"] = time.perf_counter() - t_all
