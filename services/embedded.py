@@ -116,10 +116,24 @@ def start_services(stack: contextlib.ExitStack, place_db: str | None, aligner: s
     waits = {}
     if place_db is None:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
-        place_db, waits["place-db"] = stack.enter_context(embedded_service("place-db", tmp))
+        place_db, wait = stack.enter_context(embedded_service("place-db", tmp))
+        waits["place-db"] = lambda: (wait(), default_kernel_threads())
     if aligner is None:
         aligner, waits["aligner"] = stack.enter_context(embedded_service("aligner"))
     return Services(place_db, aligner, waits)
+
+
+def default_kernel_threads() -> None:
+    """OpenCV's and the BLAS and OpenMP libraries' threads back to one per core: the place
+    database's start-up makes them one per process (`single_threaded_kernels`: its queries
+    are single vectors), which would slow the aligner's matching beside it in this one."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    from fleetmap.extract_pool import default_workers
+
+    cv2.setNumThreads(-1)
+    threadpool_limits(default_workers())
 
 
 def warm_up(*modules: str) -> threading.Thread:

@@ -85,11 +85,11 @@ def run_merge(
             db = stack.enter_context(PlaceDBClient(services.ready("place-db"), token=token))
         checked_vocabulary(db, vocab_path)
         clouds, parts = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
+        clouds = voxelising(clouds, voxel)  # for merged.ply, while the robots are aligned
         with timed(timing, "overlaps"):
             overlaps, by_pair = find_overlaps(db, ids)
         with timed(timing, "start"):
-            al = AlignerClient(services.ready("aligner"), timeout=900, token=token)
-            stack.enter_context(al)
+            al = stack.enter_context(AlignerClient(services.ready("aligner"), 900, token))
         with timed(timing, "align"):
             edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
         warm = warm_up("matplotlib.pyplot", "mcap_protobuf.writer")  # imported while linking
@@ -101,10 +101,7 @@ def run_merge(
             drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd, fleet)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
-    params = {
-        "keyframes": dataclasses.asdict(policy) if dataclasses.is_dataclass(policy) else None,
-        "vocabulary": str(vocab_path) if vocab_path else "default",
-    } | {"max_views": max_views, "voxel_m": voxel, "pcd": pcd, "correct_drift": correct_drift}
+    params = parameters(policy, vocab_path, max_views, voxel, pcd, correct_drift)
     report = build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params)
     if fleet is not None:
         add_fleet_report(report, fleet)
@@ -116,6 +113,34 @@ def run_merge(
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+class _Voxelised:
+    """A robot's map cloud voxelised in the background; `voxelised` as `MapCloud`'s."""
+
+    def __init__(self, future, voxel: float):
+        self.future, self.voxel = future, voxel
+
+    def voxelised(self, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+        if voxel != self.voxel:
+            raise ValueError(f"Expected the voxel size {self.voxel} m, got {voxel}")
+        return self.future.result()
+
+
+def voxelising(clouds: dict[str, MapCloud], voxel: float) -> dict[str, _Voxelised]:
+    """Each robot's cloud voxelised in one background thread (1-2 s for 180 keyframes)."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="voxelise")
+    out = {r: _Voxelised(pool.submit(c.voxelised, voxel), voxel) for r, c in clouds.items()}
+    pool.shutdown(wait=False)
+    return out
+
+
+def parameters(policy, vocab_path, max_views, voxel, pcd, correct_drift) -> dict:
+    """report.json's "parameters": what the job ran with."""
+    return {
+        "keyframes": dataclasses.asdict(policy) if dataclasses.is_dataclass(policy) else None,
+        "vocabulary": str(vocab_path) if vocab_path else "default",
+    } | {"max_views": max_views, "voxel_m": voxel, "pcd": pcd, "correct_drift": correct_drift}
 
 
 def place_fleet(ids: list[str], edges: dict) -> tuple:
