@@ -39,8 +39,10 @@ from fleetmap.place.live_rules import (
     evidence,
     is_due,
     merged_edges,
+    new_merge,
     nominated_pairs,
     reference,
+    refit_or_kept,
     same_placement,
 )
 from fleetmap.place.live_state import (
@@ -194,7 +196,7 @@ class LiveMap:
         """Register a new merge as a link (its co-visible keyframe pairs become overlaps),
         in the background: placing the robot does not wait for it (12 s for 280 keyframes
         on a busy machine)."""
-        if st["status"] == "merged" and st.get("at") and "last_refusal" not in st:
+        if new_merge(st):
             self._linker.submit(self._register, st["robot_a"], st["robot_b"], st["transform"])
 
     def _register(self, a: str, b: str, T: list) -> None:
@@ -230,7 +232,7 @@ class LiveMap:
         if not self._store_result(pair_key(a, b), st):
             return True
         self.place(load_states(self.db.store))
-        if st["status"] == "merged" and "last_refusal" not in st:
+        if new_merge(st):
             self._register(a, b, st["transform"])
         return True
 
@@ -318,7 +320,9 @@ class LiveMap:
         if answer["merged"]:
             T = np.array(answer["transform"], np.float64)
             log.info("live map: %s-%s merged (%d views each side)", a, b, len(views[0]))
-            return st | fit | {"status": "merged", "transform": T.tolist()}
+            return refit_or_kept(
+                before, st | fit | {"status": "merged", "transform": T.tolist()}, views
+            )
         log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
         if before is not None and before["status"] == "merged":
             keep = {k: st[k] for k in ("evidence", "attempts", "budget", "since")}

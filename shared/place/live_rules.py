@@ -32,6 +32,48 @@ def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: fl
     return n >= max(st["evidence"] + p.retry_min_new, np.ceil(st["evidence"] * p.retry_factor))
 
 
+def refit_or_kept(before: dict | None, new: dict, views: list) -> dict:
+    """A pair's state after a gated fit: the new fit, unless it replaces a merge and fits
+    the two robots' surfaces worse than the transform it would replace, both measured on
+    the new fit's views (A's, B's) with the aligner's own depth-alone `surface_rmse`: then
+    the earlier fit stays, the attempt counted. A last fit never ends worse (issue 23)."""
+    if before is None or before["status"] != "merged":
+        return new
+    old_m, new_m = surface_rmses(views, [before["transform"], new["transform"]])
+    if new_m <= old_m:
+        return new | {"surface_rmse_m": new_m}
+    keep = {k: new[k] for k in ("evidence", "attempts", "budget", "since")}
+    why = (
+        f"a refit on {new['views']} views sat {new_m:.4f} m from the surfaces, this fit {old_m:.4f}"
+    )
+    return before | keep | {"kept": why, "surface_rmse_m": old_m}
+
+
+def new_merge(st: dict) -> bool:
+    """Whether a stored pair state is a fit just made (to register as a link): not a
+    refusal or worse refit that kept an earlier merge."""
+    return (
+        st["status"] == "merged" and bool(st.get("at")) and not {"last_refusal", "kept"} & set(st)
+    )
+
+
+def surface_rmses(views: list, transforms: list) -> list[float]:
+    """`fleetmap.align.surface_rmse` of B's views' cloud on A's under each T_a_b, at the
+    aligner's fine voxel (`views`: A's, B's; stored or decoded views)."""
+    from fleetmap.align import surface_rmse
+    from fleetmap.align.types import AlignParams
+    from fleetmap.mapcloud import views_cloud
+
+    v = AlignParams().voxel_m
+    ca, cb = (
+        views_cloud(
+            [x.decoded() if hasattr(x, "decoded") else x for x in side], v, with_color=False
+        )
+        for side in views
+    )
+    return [surface_rmse(cb, ca, np.asarray(T, np.float64), v) for T in transforms]
+
+
 def nominated_pairs(states: dict, verified: set[str], counts: dict, skip: set) -> list:
     """Robot pairs (a, b) to align from nominated keyframe pairs once the robots are quiet:
     both with keyframes, none in `skip`, no verified overlap between them, not merged, and
