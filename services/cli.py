@@ -253,6 +253,14 @@ def _live_commands(sub) -> None:
         metavar="X",
         help="times recording speed (default 1; 0: as fast as possible)",
     )
+    p.add_argument(
+        "--nice",
+        type=int,
+        default=10,
+        metavar="N",
+        help="run the replay (extraction, upload) at this niceness, so that services on "
+        "the same machine go first, as beside robots that extract on board (default 10)",
+    )
     p.add_argument("--vocab", help="vocabulary file (must be the service's)")
     _add_robot_args(p)
     p.set_defaults(func=live.cmd_stream)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import queue
 import threading
 import time
@@ -101,6 +102,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
     if len(set(ids)) != len(ids):
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
     kf_index = {r.robot_id: keyframe_indices(r, _policy(args)) for r in recs}
+    if args.nice > 0 and hasattr(os, "nice"):  # the extraction workers inherit it
+        os.nice(args.nice)
     with PlaceDBClient(args.place_db, token=args.token) as client:
         checked_vocabulary(client, args.vocab)
         done = stream(recs, kf_index, client, args.vocab, args.speed, args.quiet)
