@@ -8,19 +8,32 @@ Cases are `bench/real_pairs.py`'s (robots cut from the real recordings, each mov
 own random map frame); `--isolated` adds SUN3D's robot B (another building: it must stay
 unmerged). Errors are the mean displacement of the robot's map points (every 5th frame)
 under the found transform against the true one, in cm. Times: `stream` is the wall time of
-`fleetmap stream --speed 0` (extraction and upload, the services working meanwhile);
-`placed after last kf` is from its end to the first `GET /map` (polled every 0.2 s) with
-every robot that should merge placed; `settled` is until the merge worker has had nothing
-to align for 10 s (refinements included).
+`fleetmap stream --speed X` (default 0: extraction and upload as fast as possible, the
+services working meanwhile; 1: recording speed); `placed after last kf` is from its end to
+the first `GET /map` (polled every 0.2 s) with every robot that should merge placed;
+`settled` is until the merge worker has had nothing to align for 10 s (refinements
+included).
+
+Per robot (`robots`, issue 23), from `GET /map` polled every 0.5 s during the stream too:
+`evidence_s`, when its first verified overlap with a robot it should merge with appeared
+(seconds since the stream started; the keyframes' overlap detection included, their
+extraction not); `placed_after_evidence_s`, from then to its first placement; `first_cm`,
+the error of that first placement ("ref": it was the reference then) and `settled_cm`, the
+last map's; `fits`, each placement it had, in time order, with its error.
+
+Which code runs is the interpreter's: `/work/main/.venv/bin/python bench/live_stream.py`
+measures the install of /work/main with this script.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -37,7 +50,7 @@ from fleetmap.dataset import cut_recording  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
 from tests.servers import Service  # noqa: E402
 
-FLEETMAP = str(ROOT / ".venv" / "bin" / "fleetmap")
+FLEETMAP = str(Path(sys.executable).parent / "fleetmap")  # the interpreter's install
 
 
 def prepare(case: list, work: Path, rng, isolated: bool, data: Path):
@@ -53,6 +66,11 @@ def prepare(case: list, work: Path, rng, isolated: bool, data: Path):
     return dirs, frames
 
 
+@functools.cache
+def _points(robot_dir: Path) -> np.ndarray:
+    return np.asarray(views_cloud(every_nth_views(robot_dir, 5), voxel=0.05).points)
+
+
 def errors(transforms: dict, frames: dict, ref: str, work: Path) -> dict:
     out = {}
     for r, T in transforms.items():
@@ -61,19 +79,75 @@ def errors(transforms: dict, frames: dict, ref: str, work: Path) -> dict:
         if frames[r] is None:
             out[r] = "WRONG MERGE"
             continue
-        pts = np.asarray(views_cloud(every_nth_views(work / r, 5), voxel=0.05).points)
+        pts = _points(work / r)
         T_true = frames[ref] @ np.linalg.inv(frames[r])
         out[r] = round(100 * _mean_disp(np.array(T), T_true, pts), 2)
     return out
 
 
-def live_run(dirs: list[str], should_merge: set[str], work: Path) -> dict:
+class Watch(threading.Thread):
+    """`GET /map` every `poll_s` while the robots stream: when each robot first had a
+    verified overlap with a robot it should merge with, and every placement it had
+    (time, reference, T_ref_robot), times in seconds since `t0`."""
+
+    def __init__(self, url: str, should_merge: set[str], t0: float, poll_s: float = 0.5):
+        super().__init__(daemon=True)
+        self.url, self.should, self.t0, self.poll_s = url, should_merge, t0, poll_s
+        self.evidence: dict[str, float] = {}
+        self.fits: dict[str, list] = {}
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        while not self.done.is_set():
+            try:
+                self.look(httpx.get(self.url + "/map", timeout=60).json())
+            except httpx.HTTPError:
+                pass
+            self.done.wait(self.poll_s)
+
+    def look(self, m: dict) -> None:
+        now = time.monotonic() - self.t0
+        for e in m.get("overlaps", []):
+            a, b = e["robot_a"], e["robot_b"]
+            if e["pairs"] and {a, b} <= self.should:
+                self.evidence.setdefault(a, now)
+                self.evidence.setdefault(b, now)
+        T = m.get("transforms", {})
+        if len(T) < 2:
+            return
+        for r, T_r in T.items():
+            seen = self.fits.setdefault(r, [])
+            if not seen or seen[-1][1:] != (m["reference"], T_r):
+                seen.append((now, m["reference"], T_r))
+
+
+def robot_rows(watch: Watch, final: dict, frames: dict, work: Path) -> dict:
+    """Per robot: evidence, first placement and its delay, errors of every placement."""
+    out = {}
+    for r in sorted(watch.should):
+        fits = watch.fits.get(r, [])
+        errs = ["ref" if ref == r else errors({r: T}, frames, ref, work)[r] for _, ref, T in fits]
+        ev = watch.evidence.get(r)
+        out[r] = {
+            "evidence_s": None if ev is None else round(ev, 1),
+            "placed_after_evidence_s": round(fits[0][0] - ev, 1) if fits and ev else None,
+            "first_cm": errs[0] if errs else None,
+            "settled_cm": errors(final["transforms"], frames, final["reference"], work).get(r),
+            "fits": [[round(f[0], 1), f[1], e] for f, e in zip(fits, errs, strict=True)],
+        }
+    return out
+
+
+def live_run(dirs: list[str], should_merge: set[str], work: Path, speed: float = 0.0) -> dict:
     aligner = Service("aligner").start()
     db = Service("place-db", work / "db", args=["--aligner", aligner.url]).start()
     try:
         t0 = time.monotonic()
+        watch = Watch(db.url, should_merge, t0)
+        watch.start()
         subprocess.run(
-            [FLEETMAP, "-q", "stream", *dirs, "--place-db", db.url, "--speed", "0"], check=True
+            [FLEETMAP, "-q", "stream", *dirs, "--place-db", db.url, "--speed", str(speed)],
+            check=True,
         )
         t_last = time.monotonic()
         placed_at, last_change, attempts = None, t_last, None
@@ -87,8 +161,13 @@ def live_run(dirs: list[str], should_merge: set[str], work: Path) -> dict:
             if key != attempts or busy:
                 attempts, last_change = key, time.monotonic()
             time.sleep(0.2)
+        watch.done.set()
+        watch.join()
+        watch.look(m)
         return {
             "map": m,
+            "watch": watch,
+            "stream_end_s": t_last - t0,
             "stream_s": t_last - t0,
             "placed_after_s": None if placed_at is None else placed_at - t_last,
             "settled_after_s": last_change - t_last,
@@ -115,6 +194,7 @@ def main() -> None:
     ap.add_argument("--isolated", action="store_true", help="add a robot from another building")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-batch", action="store_true")
+    ap.add_argument("--speed", type=float, default=0.0, help="times recording speed (0: max)")
     args = ap.parse_args()
     all_cases = cases(args.data)
     if args.case not in all_cases:
@@ -126,10 +206,11 @@ def main() -> None:
         )
         ref = dirs[0].split("=")[0]
         should = {r for r, T in frames.items() if T is not None}
-        live = live_run(dirs, should, work)
+        live = live_run(dirs, should, work, args.speed)
         m = live["map"]
         row = {
             "case": args.case + (" + isolated" if args.isolated else ""),
+            "speed": args.speed,
             "stream_s": round(live["stream_s"], 1),
             "placed_after_last_kf_s": None
             if live["placed_after_s"] is None
@@ -139,6 +220,7 @@ def main() -> None:
             "live_cm": errors(m["transforms"], frames, m["reference"], work),
             "unmerged": m["unmerged"],
             "alignments": sum(p["attempts"] for p in m["pairs"]),
+            "robots": robot_rows(live["watch"], m, frames, work),
         }
         if not args.no_batch:
             b = batch_run(dirs, work)
