@@ -134,6 +134,7 @@ def robot_rows(watch: Watch, final: dict, frames: dict, work: Path) -> dict:
             "first_cm": errs[0] if errs else None,
             "settled_cm": errors(final["transforms"], frames, final["reference"], work).get(r),
             "fits": [[round(f[0], 1), f[1], e] for f, e in zip(fits, errs, strict=True)],
+            "transforms": [f[2] for f in fits],  # T_ref_robot of each placement
         }
     return out
 
@@ -194,6 +195,7 @@ def main() -> None:
     ap.add_argument("--isolated", action="store_true", help="add a robot from another building")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-batch", action="store_true")
+    ap.add_argument("--keep", type=Path, help="copy the robot folders and truth here")
     ap.add_argument("--speed", type=float, default=0.0, help="times recording speed (0: max)")
     args = ap.parse_args()
     all_cases = cases(args.data)
@@ -226,6 +228,17 @@ def main() -> None:
             b = batch_run(dirs, work)
             row["batch_cm"] = errors(b["report"]["transforms"], frames, ref, work)
             row["batch_wall_s"] = round(b["wall_s"], 1)
+        if args.keep:  # the robot folders and truth, for a look at the fits afterwards
+            import shutil
+
+            shutil.copytree(
+                work, args.keep, dirs_exist_ok=True, ignore=shutil.ignore_patterns("db")
+            )
+            truth = {r: None if T is None else T.tolist() for r, T in frames.items()}
+            (args.keep / "frames.json").write_text(json.dumps(truth))
+        placements = {r: v.pop("transforms") for r, v in row["robots"].items()}
+        if args.keep:
+            (args.keep / "placements.json").write_text(json.dumps(placements))
         print(json.dumps(row, indent=1))
 
 

@@ -43,7 +43,9 @@ from fleetmap.place.live_rules import (
     nominated_pairs,
     reference,
     refit_or_kept,
+    robot_order,
     same_placement,
+    whole_map_views,
 )
 from fleetmap.place.live_state import (
     incarnation,
@@ -320,9 +322,8 @@ class LiveMap:
         if answer["merged"]:
             T = np.array(answer["transform"], np.float64)
             log.info("live map: %s-%s merged (%d views each side)", a, b, len(views[0]))
-            return refit_or_kept(
-                before, st | fit | {"status": "merged", "transform": T.tolist()}, views
-            )
+            new = st | fit | {"status": "merged", "transform": T.tolist()}
+            return refit_or_kept(before, new, lambda: [whole_map_views(self.db, r) for r in (a, b)])
         log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
         if before is not None and before["status"] == "merged":
             keep = {k: st[k] for k in ("evidence", "attempts", "budget", "since")}
@@ -388,10 +389,3 @@ class LiveMap:
             log.info("live map version %d: %d robots placed", new["version"], len(placed))
             return new
         return old
-
-
-def robot_order(db, robots: list[dict] | None = None) -> list[str]:
-    """Robot names in order of arrival (their store codes)."""
-    names = [r["robot_id"] for r in (db.robots() if robots is None else robots)]
-    codes = {n: db.store.robot_code(n) for n in names}
-    return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])

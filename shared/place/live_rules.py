@@ -11,7 +11,13 @@ robot first, then the one tried longest ago (never tried first), then by evidenc
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+
+#: Views a robot that judge a refit against the fit it would replace (`refit_or_kept`):
+#: about 1-2 s of decoding for both robots, at most a few times per pair.
+WHOLE_MAP_VIEWS = 40
 
 
 def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: float) -> bool:
@@ -32,21 +38,37 @@ def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: fl
     return n >= max(st["evidence"] + p.retry_min_new, np.ceil(st["evidence"] * p.retry_factor))
 
 
-def refit_or_kept(before: dict | None, new: dict, views: list) -> dict:
+def refit_or_kept(before: dict | None, new: dict, views: Callable[[], list]) -> dict:
     """A pair's state after a gated fit: the new fit, unless it replaces a merge and fits
-    the two robots' surfaces worse than the transform it would replace, both measured on
-    the new fit's views (A's, B's) with the aligner's own depth-alone `surface_rmse`: then
-    the earlier fit stays, the attempt counted. A last fit never ends worse (issue 23)."""
+    the two robots' surfaces worse than the transform it would replace. Both are measured
+    by the aligner's own depth-alone `surface_rmse` on the robots' whole maps (`views()`:
+    A's and B's, `whole_map_views`), not on the refit's views: the aligner chose the refit
+    by that measure on those, so there it always wins. A worse refit leaves the earlier fit
+    in place, the attempt counted. Last fits never end worse (issue 23)."""
     if before is None or before["status"] != "merged":
         return new
-    old_m, new_m = surface_rmses(views, [before["transform"], new["transform"]])
+    old_m, new_m = surface_rmses(views(), [before["transform"], new["transform"]])
     if new_m <= old_m:
         return new | {"surface_rmse_m": new_m}
     keep = {k: new[k] for k in ("evidence", "attempts", "budget", "since")}
-    why = (
-        f"a refit on {new['views']} views sat {new_m:.4f} m from the surfaces, this fit {old_m:.4f}"
-    )
+    why = f"a refit sat {new_m:.4f} m from the surfaces of the whole maps, this fit {old_m:.4f}"
     return before | keep | {"kept": why, "surface_rmse_m": old_m}
+
+
+def whole_map_views(db, robot: str, n: int = WHOLE_MAP_VIEWS) -> list:
+    """The robot's stored views (`StoredView`), evenly thinned to at most `n`."""
+    from fleetmap.view import stored_view
+
+    ids = db.store.view_ids(db.store.robot_code(robot))
+    step = max(1, -(-len(ids) // n))
+    return [stored_view(db.load_frame(k), *db.view_bytes(k)) for k in ids[::step]]
+
+
+def robot_order(db, robots: list[dict] | None = None) -> list[str]:
+    """Robot names in order of arrival (their store codes)."""
+    names = [r["robot_id"] for r in (db.robots() if robots is None else robots)]
+    codes = {n: db.store.robot_code(n) for n in names}
+    return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])
 
 
 def new_merge(st: dict) -> bool:

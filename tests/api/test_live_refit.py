@@ -31,17 +31,21 @@ def test_a_refit_that_sits_worse_keeps_the_earlier_fit():
     views = _views()
     before = _state(T_true)
     worse = _state(off, evidence=3, attempts=2, budget=12, at=2.0)
-    kept = refit_or_kept(before, worse, views)
+    kept = refit_or_kept(before, worse, lambda: views)
     assert kept["transform"] == before["transform"]
     assert (kept["attempts"], kept["budget"], kept["evidence"]) == (2, 12, 3)
-    assert "sat" in kept["kept"] and not new_merge(kept)
-    better = refit_or_kept(_state(off), _state(T_true, attempts=2, at=2.0), views)
+    assert "whole maps" in kept["kept"] and not new_merge(kept)
+    better = refit_or_kept(_state(off), _state(T_true, attempts=2, at=2.0), lambda: views)
     assert better["transform"] == T_true.tolist() and "kept" not in better
     assert better["surface_rmse_m"] < 0.03 and new_merge(better)
 
 
 def test_a_first_fit_is_taken_as_it_comes():
     T = np.eye(4)
-    assert refit_or_kept(None, _state(T), []) == _state(T)
+
+    def unused():
+        raise AssertionError("a first fit is not judged")
+
+    assert refit_or_kept(None, _state(T), unused) == _state(T)
     refused = {"status": "refused", "evidence": 1}
-    assert refit_or_kept(refused, _state(T), []) == _state(T)
+    assert refit_or_kept(refused, _state(T), unused) == _state(T)
