@@ -95,6 +95,7 @@ class Watch(threading.Thread):
         self.url, self.should, self.t0, self.poll_s = url, should_merge, t0, poll_s
         self.evidence: dict[str, float] = {}
         self.fits: dict[str, list] = {}
+        self.pairs: dict[str, dict] = {}  # "A|B|attempts" -> the pair's state, when first seen
         self.done = threading.Event()
 
     def run(self) -> None:
@@ -107,6 +108,8 @@ class Watch(threading.Thread):
 
     def look(self, m: dict) -> None:
         now = time.monotonic() - self.t0
+        for p in m.get("pairs", []):
+            self.pairs.setdefault(f"{p['robot_a']}|{p['robot_b']}|{p['attempts']}", p | {"t": now})
         for e in m.get("overlaps", []):
             a, b = e["robot_a"], e["robot_b"]
             if e["pairs"] and {a, b} <= self.should:
@@ -239,6 +242,7 @@ def main() -> None:
         placements = {r: v.pop("transforms") for r, v in row["robots"].items()}
         if args.keep:
             (args.keep / "placements.json").write_text(json.dumps(placements))
+            (args.keep / "pairs.json").write_text(json.dumps(live["watch"].pairs, indent=1))
         print(json.dumps(row, indent=1))
 
 
