@@ -1,8 +1,9 @@
 """The services started by the CLI itself when no URL is given: both in threads of this
 process (`embedded_service`), on free loopback ports, stopped at the end. A child process
-for the place database bought nothing measurable (its overlap worker's own interpreter
-lock) and cost a second interpreter's start and imports: 2.5-8 s before the first keyframe
-could be posted, on the critical path of every merge (issue 23).
+for the place database cost a second interpreter's start and imports, 2.5-8 s before the
+first keyframe could be posted, and bought an interpreter lock of its own: that shows only
+in the link registration, which now shares the lock with the aligner and the outputs
+(three HoloLens robots: links 13 -> 21 s, the whole merge 177 -> 114 s; issue 23).
 
 Both come up in the background: `start_services` returns their URLs at once, and the job
 waits for one (`Services.ready`) only when it first needs it, so their start-up overlaps
@@ -59,15 +60,17 @@ def _app(kind: str, data_dir: Path | None):
 
 
 @contextlib.contextmanager
-def embedded_service(kind: str, data_dir: Path | None = None):
+def embedded_service(kind: str, data_dir: Path | None = None, after: Callable | None = None):
     """A service on a free loopback port in a background thread, which also imports and
-    builds the app; yields (URL, wait until ready)."""
+    builds the app (once `after()` returned, if given); yields (URL, wait until ready)."""
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     built, box = threading.Event(), {}
 
     def run() -> None:
         try:
+            if after is not None:
+                after()
             import uvicorn
 
             app = _app(kind, data_dir)
@@ -113,13 +116,13 @@ def check_reachable(place_db: str | None, aligner: str | None, token: str | None
 def start_services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | None):
     """`Services`: the given service URLs, or both services starting on free loopback
     ports in the background (wait with `Services.ready`)."""
-    waits = {}
+    waits, first = {}, None
     if place_db is None:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
-        place_db, wait = stack.enter_context(embedded_service("place-db", tmp))
-        waits["place-db"] = lambda: (wait(), default_kernel_threads())
-    if aligner is None:
-        aligner, waits["aligner"] = stack.enter_context(embedded_service("aligner"))
+        place_db, first = stack.enter_context(embedded_service("place-db", tmp))
+        waits["place-db"] = lambda: (first(), default_kernel_threads())
+    if aligner is None:  # its imports (torch, Open3D) after the place database's: needed later
+        aligner, waits["aligner"] = stack.enter_context(embedded_service("aligner", after=first))
     return Services(place_db, aligner, waits)
 
 
