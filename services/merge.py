@@ -68,10 +68,9 @@ def run_merge(
     correct_drift: bool = False,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
-    overview.png, overlap_matrix.png, fleet.mcap. The place database registers the links
-    while the robots are placed and the maps written. `correct_drift`: the keyframe pose
-    graph over the fleet (`fleetmap.fleet`) corrects maps that bend (loop closures searched
-    in every robot: slower)."""
+    overview.png, overlap_matrix.png, fleet.mcap; the links are registered meanwhile.
+    `correct_drift`: the keyframe pose graph over the fleet (`fleetmap.fleet`) corrects
+    maps that bend (loop closures searched in every robot: slower)."""
     check_reachable(place_db, aligner, token)  # before any long work
     out.mkdir(parents=True, exist_ok=True)
     timing, t_all = dict.fromkeys(STAGES, 0.0), time.perf_counter()
