@@ -99,8 +99,9 @@ def _align(
         fitness=best.fitness,
         hypotheses=[h.summary() for h in [best, *rivals]],
     )
+    need = p.inliers_needed(best.consistency, best.fitness) if p.use_icp else p.min_inliers
     out.reason = (_geometry_gate(best, rivals, p) if p.use_icp else "") or _match_gate(
-        out, R, inl, p, p.spread_needed(depth)
+        out, R, inl, p, p.spread_needed(depth), need
     )
     if out.reason:
         return out
@@ -130,11 +131,16 @@ def _geometry_gate(best, rivals, p: AlignParams) -> str:
 
 
 def _match_gate(
-    out: AlignResult, R: Correspondences, inl: np.ndarray, p: AlignParams, need_spread: float
+    out: AlignResult,
+    R: Correspondences,
+    inl: np.ndarray,
+    p: AlignParams,
+    need_spread: float,
+    need_inliers: int,
 ) -> str:
     """Why the inlier matches refuse the fit (count, spread, held-out residual), or ""."""
-    if out.inliers < p.min_inliers:
-        return f"{out.inliers} inlier correspondences (need {p.min_inliers})"
+    if out.inliers < need_inliers:
+        return f"{out.inliers} inlier correspondences (need {need_inliers})"
     sp = spread(R.X[inl])
     if sp < need_spread:
         return f"inliers spread {sp:.2f} m (need {need_spread:.2f} at this depth)"
