@@ -69,9 +69,9 @@ def _distinct(hyps: list[Hypothesis], probe: np.ndarray, min_m: float) -> list[H
 
 def _judge(h: Hypothesis, cloud_b, cloud_a, views_a, views_b, margin: float, fit_d: float):
     pb, pa = np.asarray(cloud_b.points), np.asarray(cloud_a.points)
-    s1, c1 = free_space_check(apply(h.T_a_b, pb), views_a, margin)
-    s2, c2 = free_space_check(apply(invert(h.T_a_b), pa), views_b, margin)
-    h.supports, h.conflicts = s1 + s2, c1 + c2
+    s1, c1, f1 = free_space_check(apply(h.T_a_b, pb), views_a, margin)
+    s2, c2, f2 = free_space_check(apply(invert(h.T_a_b), pa), views_b, margin)
+    h.supports, h.conflicts, h.firm_conflicts = s1 + s2, c1 + c2, f1 + f2
     h.fitness = overlap_fitness(cloud_b, cloud_a, h.T_a_b, fit_d)
 
 
@@ -127,6 +127,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
             polished = Hypothesis(T, best.support, source)
             # rivals were judged unrefined: compare like with like
             polished.supports, polished.conflicts = best.supports, best.conflicts
+            polished.firm_conflicts = best.firm_conflicts
             polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
             return polished, top[1:]
     return best, top[1:]

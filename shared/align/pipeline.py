@@ -100,14 +100,11 @@ def _align(
         fitness=best.fitness,
         hypotheses=[h.summary() for h in [best, *rivals]],
     )
-    need = p.min_inliers
-    if p.use_icp and out.inliers < need:  # does the geometry decide on its own?
-        v = p.voxel_m
-        back = overlap_fitness(clouds[0].at(v), clouds[1].at(v), invert(best.T_a_b), 2 * v)
-        need = p.inliers_needed(best.consistency, min(best.fitness, back))
-    out.reason = (_geometry_gate(best, rivals, p, probe) if p.use_icp else "") or _match_gate(
-        out, R, inl, p, p.spread_needed(depth), need
-    )
+    decisive = p.use_icp and _decisive(best, clouds, p)
+    need = p.min_inliers // 2 if decisive else p.min_inliers
+    out.reason = (
+        _geometry_gate(best, rivals, p, probe, decisive) if p.use_icp else ""
+    ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
     if out.reason:
         return out
     if p.try_mlp and out.inliers >= 30:
@@ -116,12 +113,23 @@ def _align(
     return out
 
 
-def _geometry_gate(best, rivals, p: AlignParams, probe: np.ndarray) -> str:
+def _decisive(best, clouds, p: AlignParams) -> bool:
+    """`AlignParams.decisive` for the best hypothesis (A's share on B's measured only
+    where the rest already holds)."""
+    if best.firm_consistency < p.decisive_consistency or best.fitness < 2 * p.min_overlap:
+        return False
+    v = p.voxel_m
+    back = overlap_fitness(clouds[0].at(v), clouds[1].at(v), invert(best.T_a_b), 2 * v)
+    return p.decisive(best.firm_consistency, min(best.fitness, back))
+
+
+def _geometry_gate(best, rivals, p: AlignParams, probe: np.ndarray, decisive: bool) -> str:
     """Why the maps' geometry refuses the best hypothesis, or "" if it does not. A rival is
-    far when it moves B's points (`probe`) `rival_m` (RMS) or turns `rival_deg` away."""
+    far when it moves B's points (`probe`) `rival_m` (RMS) or turns `rival_deg` away.
+    Geometry that decides on its own (`decisive`) stands in for the consistency."""
     if best.fitness < p.min_overlap:
         return f"the maps overlap on {best.fitness:.2f} of B's cloud (need {p.min_overlap})"
-    if best.consistency < p.min_consistency:
+    if best.consistency < p.min_consistency and not decisive:
         return (
             f"free-space consistency {best.consistency:.2f} (need {p.min_consistency}): "
             "the aligned maps put surfaces where the cameras saw empty space"
