@@ -12,7 +12,7 @@ from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
 from fleetmap.place.live import LiveParams
-from fleetmap.services.common import refuse_flat_names, secrets_dir
+from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
 def default_data_dir() -> Path:
