@@ -11,7 +11,7 @@ import numpy as np
 from fleetmap.align.types import AlignParams, Hypothesis
 from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import apply, invert, transform_error
-from fleetmap.mapcloud import REG, free_space_check, icp, overlap_fitness
+from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
 from fleetmap.registration import ransac_rigid
 
 log = logging.getLogger(__name__)
@@ -93,6 +93,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     before; their truncated costs differed by 0.1% between the two and chose colour on the
     HoloLens.) See docs/ALIGNER.md."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
+    views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
     probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
     hyps = sorted(hyps, key=lambda h: -h.support)

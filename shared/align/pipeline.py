@@ -26,8 +26,8 @@ from fleetmap.align.validation import holdout_residual, spread
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
-from fleetmap.geometry import apply, transform_error
-from fleetmap.mapcloud import ViewsCloud
+from fleetmap.geometry import apply, invert, transform_error
+from fleetmap.mapcloud import ViewsCloud, overlap_fitness
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +99,13 @@ def _align(
         fitness=best.fitness,
         hypotheses=[h.summary() for h in [best, *rivals]],
     )
+    need = p.min_inliers
+    if p.use_icp and out.inliers < need:  # does the geometry decide on its own?
+        v = p.voxel_m
+        back = overlap_fitness(clouds[0].at(v), clouds[1].at(v), invert(best.T_a_b), 2 * v)
+        need = p.inliers_needed(best.consistency, min(best.fitness, back))
     out.reason = (_geometry_gate(best, rivals, p) if p.use_icp else "") or _match_gate(
-        out, R, inl, p, p.spread_needed(depth)
+        out, R, inl, p, p.spread_needed(depth), need
     )
     if out.reason:
         return out
@@ -130,11 +135,16 @@ def _geometry_gate(best, rivals, p: AlignParams) -> str:
 
 
 def _match_gate(
-    out: AlignResult, R: Correspondences, inl: np.ndarray, p: AlignParams, need_spread: float
+    out: AlignResult,
+    R: Correspondences,
+    inl: np.ndarray,
+    p: AlignParams,
+    need_spread: float,
+    need_inliers: int,
 ) -> str:
     """Why the inlier matches refuse the fit (count, spread, held-out residual), or ""."""
-    if out.inliers < p.min_inliers:
-        return f"{out.inliers} inlier correspondences (need {p.min_inliers})"
+    if out.inliers < need_inliers:
+        return f"{out.inliers} inlier correspondences (need {need_inliers})"
     sp = spread(R.X[inl])
     if sp < need_spread:
         return f"inliers spread {sp:.2f} m (need {need_spread:.2f} at this depth)"

@@ -48,6 +48,9 @@ def test_different_places_are_not_merged(sun3d_views, tum_pairs):
             )
     res = align_views([(a, b) for a in va for b in vb])
     assert not res.merged and res.reason, res.to_dict()
+    # the desk's few frames laid on the room's planes fit at 0.95 consistency on half the
+    # desk, but cover a few % of the room: the geometry does not decide on its own
+    assert "need 6" not in res.reason, res.reason
 
 
 @pytest.mark.parametrize(
