@@ -10,7 +10,7 @@ import numpy as np
 
 from fleetmap.align.types import AlignParams, Hypothesis
 from fleetmap.correspondences import Correspondences
-from fleetmap.geometry import apply, invert, transform_error
+from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
 from fleetmap.registration import ransac_rigid
 
@@ -46,6 +46,12 @@ def pair_hypotheses(R: Correspondences, p: AlignParams) -> list[Hypothesis]:
         if inl.sum() >= p.pair_min_support:
             out.append(Hypothesis(T, int(inl.sum()), f"pair {int(k)}"))
     return out
+
+
+def probe_points(cloud) -> np.ndarray:
+    """About 300 of a cloud's points, (N, 3): what moving a map means, measured."""
+    pts = np.asarray(cloud.points)
+    return pts[:: max(1, len(pts) // 300)]
 
 
 def _distinct(hyps: list[Hypothesis], probe: np.ndarray, min_m: float) -> list[Hypothesis]:
@@ -95,7 +101,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
-    probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
+    probe = probe_points(cb0)
     hyps = sorted(hyps, key=lambda h: -h.support)
     hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
     log.debug("%d distinct hypotheses", len(hyps))
@@ -116,7 +122,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     for T, source in sorted(
         _refinements(best, clouds, p), key=lambda c: surface_rmse(cb1, ca1, c[0], v1)
     ):
-        dt, dr = transform_error(T, best.T_a_b)
+        dt, dr = displacement_rms(T, best.T_a_b, probe), transform_error(T, best.T_a_b)[1]
         if dt <= p.rival_m and dr <= p.rival_deg:  # a refinement, not a jump elsewhere
             polished = Hypothesis(T, best.support, source)
             # rivals were judged unrefined: compare like with like

@@ -68,7 +68,7 @@ class AlignParams:
         on the room at 0.95 consistency, 6% of the room on the desk). Two kinds of evidence,
         each enough to refuse: a wide baseline leaves a handful of right matches (SUN3D's
         two recordings: 8 of 489), and the free-space test tells the place apart (right
-        alignments 0.97-1.00, look-alike places at most 0.78, docs/ALIGNER.md)."""
+        alignments 0.956-1.00, look-alike places up to 0.87, docs/ALIGNER.md)."""
         decisive = consistency >= self.decisive_consistency and overlap >= 2 * self.min_overlap
         return self.min_inliers // 2 if decisive else self.min_inliers
 
