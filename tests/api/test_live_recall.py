@@ -5,6 +5,7 @@ words point."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from fleetmap.dataset import cut_recording, read_recording
@@ -16,7 +17,9 @@ from fleetmap.place.live import LiveMap, LiveParams
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
 from fleetmap.view import encode_view
-from tests.api.test_live_reliability import moved, post, real_align
+from tests.helpers import moved, post_with_view, real_align
+
+pytestmark = pytest.mark.slow
 
 
 def window(vocabulary, folder, frames: slice, robot_dir, T_new_old: np.ndarray) -> list:
@@ -45,7 +48,7 @@ def test_live_map_tries_an_unverified_pair_once_quiet(hololens, vocabulary, tmp_
         for robot, folder, T in (("A", "hl_a", np.eye(4)), ("B", "hl_b", S)):
             keyframes = window(vocabulary, hololens / folder, slice(15, 75), tmp_path / robot, T)
             for frame, view in keyframes:
-                post(client, robot, frame, view)
+                post_with_view(client, robot, frame, view)
         assert client.get("/overlaps", params={"wait": 120}).json()["graph"] == []
         live = LiveMap(app.state.db, real_align(calls), LiveParams(settle_s=0.0))
         assert live.tick() is True
