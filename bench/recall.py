@@ -2,7 +2,7 @@
 beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
-        [--only sun3d hololens tum_rpy cross] [--json out.json]
+        [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
 hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
@@ -162,6 +162,7 @@ def run_pair(k: int, pair: dict, specs: dict, work: Path, seeds: int, rng) -> di
     if not report["fits"] and not row["merged"]:
         row["reason"] = "no verified keyframe pair"
     row["overlaps"] = len([o for o in report["overlaps"] if o.get("source") != "link"])
+    row["fits"] = [{k2: f.get(k2) for k2 in ("merged", "reason", "method")} for f in report["fits"]]
     pb = np.asarray(
         views_cloud(every_nth_views(work / f"p{k}" / "B", 5), voxel=0.05, with_color=False).points
     )
@@ -232,6 +233,9 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", help="recordings (and/or 'cross') to run")
     ap.add_argument("--json", type=Path, help="write every row here")
     ap.add_argument("--table", type=Path, help="only print the table of rows written earlier")
+    ap.add_argument(
+        "--keep", type=Path, help="keep every pair's windows and merge output here (to inspect)"
+    )
     args = ap.parse_args()
     if args.table:
         print(table(json.loads(args.table.read_text())))
@@ -251,8 +255,9 @@ def main() -> None:
     print(f"{len(pairs)} pairs", flush=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="fleetmap-recall-") as tmp:
+        work = args.keep or Path(tmp)
         for k, pair in enumerate(pairs):
-            row = run_pair(k, pair, specs, Path(tmp), args.seeds, rng)
+            row = run_pair(k, pair, specs, work, args.seeds, rng)
             rows.append(row)
             err = f"{row['error_cm']:.1f} cm" if row.get("error_cm") is not None else "-"
             rec = ", ".join(f"{e:.1f}" for e, _ in row["recipe"]) or "-"

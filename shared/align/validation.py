@@ -45,9 +45,11 @@ def holdout_residual(
     X: np.ndarray, Y: np.ndarray, folds: int = 5, seed: int = 0, model: str = "rigid"
 ) -> float:
     """Median residual of each fold predicted by a fit on the other folds (metres);
-    `model`: "rigid", "affine" (closed forms) or "mlp"."""
-    if len(X) < 2 * folds:
+    `model`: "rigid", "affine" (closed forms) or "mlp". Fewer folds where there are fewer
+    than two points a fold (each fit keeps at least four); under six points: inf."""
+    if len(X) < 6:
         return float("inf")
+    folds = min(folds, len(X) // 2)
     if model in ("rigid", "affine"):
         fit = rigid_fit if model == "rigid" else affine_fit
     else:
