@@ -56,6 +56,7 @@ def test_ingest_query_and_overlaps(client, frames):
     assert [s["name"] for s in r["stages"]] == [
         "clusters",
         "gist_threshold",
+        "inverted_file",
         "bow",
         "sift_matches",
         "epipolar",
