@@ -227,11 +227,13 @@ class PlaceIndex:
         with self._lock:
             words = self.postings.informative(q_ids, q_counts, p.ivf_words)
             score = self.postings.score(q_ids, q_counts, words, self.ids.n)
+            score[self._slots(np.asarray(known, np.int64))] = 0.0  # nominated already
             slots = np.flatnonzero(score)
-            keep = flt.mask(self.robots.view[slots], self.stamps.view[slots])
-            keep &= ~np.isin(self.ids.view[slots], np.asarray(known, np.int64))
-            slots = slots[keep]
-            slots = slots[np.argsort(-score[slots], kind="stable")[: p.ivf_candidates]]
+            slots = slots[flt.mask(self.robots.view[slots], self.stamps.view[slots])]
+            k = p.ivf_candidates
+            if len(slots) > k:  # the k best without sorting every keyframe
+                slots = slots[np.argpartition(-score[slots], k - 1)[:k]]
+            slots = slots[np.argsort(-score[slots], kind="stable")]
             g = self.gists.view[slots].astype(np.float32)
             dist = np.linalg.norm(g - np.asarray(gist, np.float32).reshape(1, -1), axis=1)
             cands = [

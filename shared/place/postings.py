@@ -88,12 +88,6 @@ class _Segment:
             np.concatenate([[0], np.cumsum(counts)]), self.slots[keep], self.weights[keep]
         )
 
-    def gather(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions of the postings of `words` and the index into `words` of each."""
-        starts, lengths = self.ptr[words], self.ptr[words + 1] - self.ptr[words]
-        flat = np.repeat(starts - np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths)
-        return flat + np.arange(lengths.sum()), np.repeat(np.arange(len(words)), lengths)
-
 
 class Postings:
     """Word -> (keyframe slot, sqrt of the word's frequency in that keyframe) postings.
@@ -173,15 +167,18 @@ class Postings:
         q = np.zeros(self.n_words, np.float64)
         q[np.asarray(q_ids, np.int64)] = np.sqrt(q_counts / max(float(np.sum(q_counts)), 1e-12))
         words = np.asarray(words, np.int64)
-        slots, terms = [], []
-        for s in self.segments:
-            flat, which = s.gather(words)
-            slots.append(s.slots[flat])
-            terms.append(q[words][which] * s.weights[flat])
-        sel = np.zeros(self.n_words, np.float64)
-        sel[words] = q[words]
-        t_sel = sel[self.tail_words.view]
-        hit = np.flatnonzero(t_sel)
+        slots, weights, lengths = [], [], []
+        for s in self.segments:  # contiguous slices: no index arrays over the postings
+            for w in words:
+                a, b = s.ptr[w], s.ptr[w + 1]
+                slots.append(s.slots[a:b])
+                weights.append(s.weights[a:b])
+            lengths.append(s.ptr[words + 1] - s.ptr[words])
+        hit = np.flatnonzero(np.isin(self.tail_words.view, words))
         slots.append(self.tail_slots.view[hit])
-        terms.append(t_sel[hit] * self.tail_weights.view[hit])
-        return np.bincount(np.concatenate(slots), np.concatenate(terms), minlength=n_slots)
+        weights.append(self.tail_weights.view[hit])
+        qw = np.concatenate(
+            [np.repeat(q[words], n) for n in lengths] + [q[self.tail_words.view[hit]]]
+        )
+        terms = qw * np.concatenate(weights)
+        return np.bincount(np.concatenate(slots), terms, minlength=n_slots)
