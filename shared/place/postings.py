@@ -174,7 +174,9 @@ class Postings:
                 slots.append(s.slots[a:b])
                 weights.append(s.weights[a:b])
             lengths.append(s.ptr[words + 1] - s.ptr[words])
-        hit = np.flatnonzero(np.isin(self.tail_words.view, words))
+        chosen = np.zeros(self.n_words, bool)
+        chosen[words] = True
+        hit = np.flatnonzero(chosen[self.tail_words.view])  # one lookup per tail posting
         slots.append(self.tail_slots.view[hit])
         weights.append(self.tail_weights.view[hit])
         qw = np.concatenate(

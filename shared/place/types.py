@@ -17,7 +17,7 @@ class CascadeParams:
     gist_threshold: float = 0.75
     max_candidates: int = 300
     # inverted file beside the GIST clusters (docs/PLACE_DB.md says why these values)
-    ivf_words: int = 16  # the query's most informative words whose postings are read
+    ivf_words: int = 8  # the query's most informative words whose postings are read
     ivf_candidates: int = 12  # keyframes it may add to the GIST stage's (= max_verify)
     bow_threshold: float = 0.92
     max_verify: int = 12
