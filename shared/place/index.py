@@ -228,8 +228,8 @@ class PlaceIndex:
             words = self.postings.informative(q_ids, q_counts, p.ivf_words)
             score = self.postings.score(q_ids, q_counts, words, self.ids.n)
             score[self._slots(np.asarray(known, np.int64))] = 0.0  # nominated already
-            slots = np.flatnonzero(score)
-            slots = slots[flt.mask(self.robots.view[slots], self.stamps.view[slots])]
+            # the filter over the contiguous columns: no gather of ~every keyframe's row
+            slots = np.flatnonzero(flt.mask(self.robots.view, self.stamps.view) & (score > 0))
             k = p.ivf_candidates
             if len(slots) > k:  # the k best without sorting every keyframe
                 slots = slots[np.argpartition(-score[slots], k - 1)[:k]]
