@@ -10,6 +10,18 @@ if [ -n "$missing" ]; then
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
   $SUDO apt-get update -qq && $SUDO apt-get install -y -qq $missing
 fi
+# Fast path: a venv this script completed for the same pyproject.toml and install.sh (the
+# stamp), whose `fleetmap` is this checkout and whose requirements hold (pip check). A fresh
+# machine, a changed dependency list or a venv copied from elsewhere installs everything.
+STAMP=.venv/.fleetmap-install-stamp
+want=$(cat pyproject.toml scripts/install.sh | sha256sum | cut -d' ' -f1)
+if [ -z "${FLEETMAP_FULL_INSTALL:-}" ] && [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] \
+  && .venv/bin/python -c "import fleetmap, pathlib, sys; \
+sys.exit(pathlib.Path(fleetmap.__file__).parent.resolve() != pathlib.Path('shared').resolve())" \
+  2>/dev/null && .venv/bin/python -m pip check -q >/dev/null 2>&1; then
+  echo "fleetmap already installed in .venv (FLEETMAP_FULL_INSTALL=1 reinstalls)"
+  exit 0
+fi
 PY=${PYTHON:-python3.11}
 command -v "$PY" >/dev/null || PY=python3
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
@@ -21,4 +33,5 @@ quiet() { grep -v "^WARNING: Location" || true; }
 PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[server,dev]" 2>&1 | quiet
 .venv/bin/python -c "import fastapi, cv2, open3d, torch, faiss, psycopg; import fleetmap.services.cli" \
   || { echo "install.sh: dependencies failed to import" >&2; exit 1; }
+echo "$want" > "$STAMP"
 echo "fleetmap installed in .venv"

@@ -33,8 +33,14 @@ class _Client:
         self.urls = [u.strip().rstrip("/") for u in url.split(",") if u.strip()]
         if not self.urls:
             raise BadInput(f"No service URL in {url!r}")
+        # idle connections dropped well before uvicorn closes them (5 s): one reused as the
+        # server closed it reset the robot's POST under load ("Connection reset by peer")
+        limits = httpx.Limits(
+            max_connections=100, max_keepalive_connections=20, keepalive_expiry=2.0
+        )
         self._clients = [
-            httpx.Client(base_url=u, timeout=timeout, headers=headers) for u in self.urls
+            httpx.Client(base_url=u, timeout=timeout, headers=headers, limits=limits)
+            for u in self.urls
         ]
         self._current = 0
 

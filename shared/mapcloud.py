@@ -237,28 +237,27 @@ class SeenDepth:
 
 def free_space_check(
     points: np.ndarray, views: Iterable, margin: float = 0.05, rel_margin: float = 0.02
-) -> tuple[int, int]:
+) -> tuple[int, int, int]:
     """How well points (N, 3), in the views' map frame, agree with what the views' depth saw.
 
     Each point is projected into each view. Where that view measured a surface at about the
     point's depth (within tol = `margin` + `rel_margin` x depth) the point is supported;
-    where the view saw farther than the point by more than tol, at the point's pixel and at
-    every pixel within tol of it sideways (tol x focal / depth pixels, rounded down to a power
-    of two), the point sits in space the camera saw empty: a conflict. Points behind the
-    measured surface or outside the image tell nothing. A wrong alignment of two maps of a
-    look-alike room overlaps surfaces in places but puts others in seen-empty space; a right
-    one has few conflicts (Huber and Hebert's free-space test).
+    where the view saw farther than the point by more than tol, the point sits in space the
+    camera saw empty: a conflict. Points behind the measured surface or outside the image
+    tell nothing. A wrong alignment of two maps of a look-alike room overlaps surfaces in
+    places but puts others in seen-empty space; a right one has few conflicts (Huber and
+    Hebert's free-space test).
 
-    The tolerance is the same across the ray as along it: the maps' own pose errors move a
-    point as much sideways as in depth, and sideways, at a depth edge, a shift of a few
-    pixels puts a right point in front of the background. Judged along the ray alone, right
-    alignments of SUN3D's two recordings (ground truth good to 1.5 deg) had 23-25% conflicts
-    against 35-46% for look-alike places a metre or more away; with the sideways tolerance,
-    1-2% against 22% or more (docs/ALIGNER.md).
+    A conflict is *firm* where the view saw farther at every pixel within tol of the point
+    sideways too (tol x focal / depth pixels, rounded down to a power of two): judged along
+    the ray alone, a right point beside a depth edge, moved a few pixels by the maps' own
+    pose error, lands in front of the background. Right alignments of SUN3D's two
+    recordings (ground truth good to 1.5 deg) had 23-25% conflicts, 1-2% firm ones; maps
+    that bend (drift) and look-alike places keep more firm ones (docs/ALIGNER.md).
 
     `views`: RGB-D views or their `SeenDepth` (which keep the nearest-reading images between
-    calls). Returns (supports, conflicts) summed over views."""
-    support = conflict = 0
+    calls). Returns (supports, conflicts, firm conflicts) summed over views."""
+    support = conflict = firm = 0
     pts = np.asarray(points, np.float64)
     for v in views:
         seen = v if isinstance(v, SeenDepth) else SeenDepth(v)
@@ -276,6 +275,7 @@ def free_space_check(
         tol = margin + rel_margin * d
         support += int(np.count_nonzero(ok & (np.abs(z - d) <= tol)))
         idx = np.flatnonzero(ok & (z < d - tol))
+        conflict += len(idx)
         if not len(idx):
             continue
         radius = tol[idx] * K.fx / z[idx]
@@ -283,5 +283,5 @@ def free_space_check(
         for k in np.unique(level):
             sel = idx[level == k]
             near = seen.nearest(int(k))[w[sel], u[sel]]
-            conflict += int(np.count_nonzero(z[sel] < near - tol[sel]))
-    return support, conflict
+            firm += int(np.count_nonzero(z[sel] < near - tol[sel]))
+    return support, conflict, firm

@@ -1,4 +1,8 @@
-"""Shared fixtures: real data from ../shared/data (skipped cleanly where absent)."""
+"""Shared fixtures: real data from ../shared/data (skipped cleanly where absent).
+
+What is costly is built once per session and shared: the SUN3D pair's keyframes (as encoded
+frames and as RGB-D views) and their alignment, the SUN3D merge, the simulated fleet, the
+random textured fleet's frames and one aligner process. Tests must not change them."""
 
 from __future__ import annotations
 
@@ -233,3 +237,89 @@ def pg_cluster():
 def pg_url(pg_cluster) -> str:
     """A fresh, empty database on the session's PostgreSQL server."""
     return pg_cluster.database()
+
+
+# --- built once per session -------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def sun3d_keyframes(sun3d, vocabulary) -> dict:
+    """The SUN3D pair's keyframes as `fleetmap extract` makes them: {robot: [Frame]}."""
+    from fleetmap.dataset import read_recording
+    from fleetmap.extract import FrameExtractor, extract_recording
+
+    x = FrameExtractor(vocabulary)
+    return {
+        r: list(extract_recording(read_recording(sun3d / r), x)) for r in ("robot_a", "robot_b")
+    }
+
+
+@pytest.fixture(scope="session")
+def sun3d_frames(sun3d_keyframes) -> dict[str, list[bytes]]:
+    """The SUN3D pair's keyframes encoded, as robots post them: {robot: [bytes]}."""
+    from fleetmap.frame import encode
+
+    return {r: [encode(f) for f in frames] for r, frames in sun3d_keyframes.items()}
+
+
+@pytest.fixture(scope="session")
+def sun3d_views(sun3d) -> dict:
+    """The SUN3D pair's keyframes as RGB-D views: {robot: [RGBDView]}."""
+    from fleetmap.correspondences import RGBDView
+    from fleetmap.dataset import load_depth, load_rgb, read_recording
+    from fleetmap.extract import keyframe_indices
+
+    out = {}
+    for robot in ("robot_a", "robot_b"):
+        rec = read_recording(sun3d / robot)
+        out[robot] = [
+            RGBDView(
+                load_rgb(f.rgb_path), load_depth(f.depth_path), rec.intrinsics, f.T_map_cam, f.stamp
+            )
+            for f in (rec.frames[i] for i in keyframe_indices(rec))
+        ]
+    return out
+
+
+@pytest.fixture(scope="session")
+def sun3d_alignment(sun3d_views):
+    """`align_views` of every SUN3D keyframe pair (A x B): one real wide-baseline fit."""
+    from fleetmap.align import align_views
+
+    return align_views([(a, b) for a in sun3d_views["robot_a"] for b in sun3d_views["robot_b"]])
+
+
+@pytest.fixture(scope="session")
+def sun3d_merge(sun3d, tmp_path_factory) -> tuple[Path, dict]:
+    """`fleetmap merge A=robot_a B=robot_b`: (output folder, report.json)."""
+    import json
+
+    from fleetmap.services.cli import main
+
+    out = tmp_path_factory.mktemp("sun3d_merge")
+    args = ["-q", "merge", f"A={sun3d / 'robot_a'}", f"B={sun3d / 'robot_b'}", "--out", str(out)]
+    assert main(args) == 0
+    return out, json.loads((out / "report.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def sim_fleet(tmp_path_factory) -> tuple[Path, dict]:
+    """`fleetmap simulate`: 3 robots of 12 frames, every pair overlapping; (folder, the true
+    transforms {robot: T_robot0_robot})."""
+    import json
+
+    from fleetmap.services.cli import main
+
+    sim = tmp_path_factory.mktemp("fleet")
+    assert main(["-q", "simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
+    return sim, json.loads((sim / "T_true.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def aligner_url() -> str:
+    """One aligner process for the session (or ALIGNER_URL, e.g. `docker compose up`'s).
+    Stateless between requests: tests share it."""
+    from tests.servers import running
+
+    with running("aligner", url_env="ALIGNER_URL") as url:
+        yield url

@@ -15,6 +15,9 @@ from pathlib import Path
 import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The merge worker's timing for tests: overlaps looked at 4 times a second (not once),
+#: robots quiet after 2 s without a keyframe (not 5 s). What is asserted is unchanged.
+LIVE_FAST = {"FLEETMAP_PLACE_DB_LIVE__POLL_S": "0.25", "FLEETMAP_PLACE_DB_LIVE__SETTLE_S": "2"}
 
 
 def free_port() -> int:

@@ -6,7 +6,7 @@ from pydantic import SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.align.types import AlignParams
-from fleetmap.services.common import refuse_flat_names, secrets_dir
+from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
 class Settings(BaseSettings):

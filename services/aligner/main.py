@@ -8,9 +8,13 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from fleetmap.services import common
+from fleetmap.services.aligner.budget import PixelBudget
 from fleetmap.services.aligner.config import Settings
 from fleetmap.services.aligner.routes import router
+from fleetmap.services.auth import auth_summary
+from fleetmap.services.docs import install_docs
+from fleetmap.services.http_errors import install_error_handlers
+from fleetmap.services.middleware import install_middleware
 
 
 def create_app(settings: Settings | None = None, announce: bool = True) -> FastAPI:
@@ -24,11 +28,11 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
         import torch  # noqa: F401
 
         app.state.clouds = OrderedDict()
-        app.state.pixels = common.PixelBudget(
+        app.state.pixels = PixelBudget(
             settings.max_pixels_in_flight, requests=settings.max_requests_in_flight
         )
         if announce:
-            logging.getLogger(__name__).warning("aligner: %s", common.auth_summary(settings))
+            logging.getLogger(__name__).warning("aligner: %s", auth_summary(settings))
         yield
         app.state.clouds.clear()
 
@@ -36,12 +40,13 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
         title="fleetmap aligner",
         version="0.1.0",
         lifespan=lifespan,
-        docs_url=None,  # served from local files by common.install_docs
+        docs_url=None,  # served from local files by install_docs
         redoc_url=None,
         description="Fits the transform between two robots' maps from RGB-D pairs.",
     )
     app.state.settings = settings
-    common.install(app)
-    common.install_docs(app)
+    install_error_handlers(app)
+    install_middleware(app)
+    install_docs(app)
     app.include_router(router)
     return app

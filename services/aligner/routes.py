@@ -15,7 +15,10 @@ from fleetmap.camera import Intrinsics
 from fleetmap.correspondences import RGBDView
 from fleetmap.errors import BadInput, PayloadTooLarge, UnknownKeyframe
 from fleetmap.services.aligner import schemas as s
-from fleetmap.services.common import ERROR_RESPONSES, any_token, read_body
+from fleetmap.services.aligner.deps import AlignerSettings, Budget, Clouds
+from fleetmap.services.auth import require_token
+from fleetmap.services.body import read_body
+from fleetmap.services.http_errors import ERROR_RESPONSES
 from fleetmap.view import check_intrinsics, decode_image, image_size
 from fleetmap.wire import ALIGN_META, view_part
 
@@ -24,9 +27,9 @@ FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
 
 
 @router.get("/healthz", response_model=s.Health)
-def healthz(request: Request) -> s.Health:
+def healthz(clouds: Clouds) -> s.Health:
     """Liveness and the merged clouds held for download."""
-    return s.Health(status="ok", clouds_cached=len(request.app.state.clouds))
+    return s.Health(status="ok", clouds_cached=len(clouds))
 
 
 def _view(files: dict[str, bytes], name: str, vm: s.ViewMeta) -> RGBDView:
@@ -124,13 +127,13 @@ ALIGN_BODY = {
     "/align",
     response_model=s.AlignAnswer,
     response_model_exclude_none=True,
-    dependencies=[Depends(any_token)],
+    dependencies=[Depends(require_token)],
     openapi_extra=ALIGN_BODY,
 )
-async def align(request: Request) -> s.AlignAnswer:
+async def align(
+    request: Request, st: AlignerSettings, budget: Budget, clouds: Clouds
+) -> s.AlignAnswer:
     """Fit the transform from robot B's map frame into robot A's from RGB-D pairs."""
-    st = request.app.state.settings
-    budget = request.app.state.pixels
     async with budget.slot():  # before the body: requests that wait hold no memory
         # chunked or not, cut off at the limit
         await read_body(request, st.max_body_bytes, FORM_TYPES)
@@ -154,7 +157,6 @@ async def align(request: Request) -> s.AlignAnswer:
     answer = s.AlignAnswer(**result)
     if cloud is not None:
         cid = uuid.uuid4().hex[:12]
-        clouds = request.app.state.clouds
         clouds[cid] = cloud
         while len(clouds) > st.cloud_cache:
             clouds.pop(next(iter(clouds)))
@@ -164,13 +166,13 @@ async def align(request: Request) -> s.AlignAnswer:
 
 @router.get(
     "/clouds/{cloud_id}",
-    dependencies=[Depends(any_token)],
+    dependencies=[Depends(require_token)],
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
-def cloud(cloud_id: str, request: Request) -> Response:
+def cloud(cloud_id: str, clouds: Clouds) -> Response:
     """The merged cloud of an alignment as a binary PLY."""
-    item = request.app.state.clouds.get(cloud_id)
+    item = clouds.get(cloud_id)
     if item is None:
         raise UnknownKeyframe(f"Unknown cloud {cloud_id!r}")
     return Response(

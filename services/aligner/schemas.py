@@ -19,7 +19,7 @@ from typing import Literal
 from pydantic import BaseModel, Field, model_validator
 
 from fleetmap.align.types import METHODS
-from fleetmap.services.common import Matrix4
+from fleetmap.services.schemas import Matrix4
 
 
 class IntrinsicsIn(BaseModel):

@@ -12,7 +12,8 @@ from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
 from fleetmap.place.live import LiveParams
-from fleetmap.services.common import refuse_flat_names, secrets_dir
+from fleetmap.place.store import DB_FILE, POSTGRES_SCHEMES
+from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
 def default_data_dir() -> Path:
@@ -33,7 +34,7 @@ class Settings(BaseSettings):
     # postgresql://USER[:PASS]@HOST:PORT/DB: replicas over one database; unset: SQLite in
     # data_dir (the embedded default)
     database: SecretStr | None = None
-    db_file: str = "place_db.sqlite"
+    db_file: str = DB_FILE
     vocabulary: Path | None = None  # None: the shipped default
     # access control: none configured = open (logged at start-up)
     operator_token: SecretStr | None = None
@@ -70,7 +71,7 @@ class Settings(BaseSettings):
     @field_validator("database")
     @classmethod
     def _postgres_url(cls, v: SecretStr | None) -> SecretStr | None:
-        if v is not None and not v.get_secret_value().startswith(("postgresql://", "postgres://")):
+        if v is not None and not v.get_secret_value().startswith(POSTGRES_SCHEMES):
             raise ValueError("must be a postgresql://USER[:PASS]@HOST:PORT/DB URL")
         return v
 

@@ -12,8 +12,10 @@ from starlette.concurrency import run_in_threadpool
 
 from fleetmap.mapcloud import ply_bytes
 from fleetmap.place.live_view import BASE_VOXEL_M, map_document
-from fleetmap.services.common import ERROR_RESPONSES, operator_only
+from fleetmap.services.auth import require_operator
+from fleetmap.services.http_errors import ERROR_RESPONSES
 from fleetmap.services.place_db import schemas as s
+from fleetmap.services.place_db.deps import Database, Renderer
 from fleetmap.services.place_db.page import CSP, PAGE
 from fleetmap.view import media_type
 
@@ -32,33 +34,33 @@ async def run_in_map_pool(request: Request, fn, *args):
     "/map",
     response_model=s.LiveMap,
     response_model_exclude_none=True,
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
 )
-async def live_map(request: Request) -> s.LiveMap:
+async def live_map(db: Database) -> s.LiveMap:
     """The live fleet map: each placed robot's transform into the reference robot's map
     frame (`transforms[R]` maps R's map points into the reference's), the robots not placed
     with the reason, and the merge worker's pair states. `version` changes only when the
     placement does."""
-    return s.LiveMap(**await run_in_threadpool(map_document, request.app.state.db))
+    return s.LiveMap(**await run_in_threadpool(map_document, db))
 
 
 @router.get(
     "/map/cloud.ply",
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
 async def map_cloud(
     request: Request,
+    db: Database,
+    renderer: Renderer,
     voxel: float = Query(0.05, ge=BASE_VOXEL_M, le=1.0, description="voxel size in metres"),
 ) -> Response:
     """The merged cloud of the placed robots (binary PLY: x y z, image colour, per-point
     `robot` index in the order of the map's `robots`), in the reference frame."""
 
     def build() -> bytes:
-        app = request.app.state
-        m = map_document(app.db)
-        return ply_bytes(*app.renderer.cloud(m, voxel))
+        return ply_bytes(*renderer.cloud(map_document(db), voxel))
 
     body = await run_in_map_pool(request, build)
     return Response(body, media_type="application/octet-stream")
@@ -66,16 +68,15 @@ async def map_cloud(
 
 @router.get(
     "/map/overview.png",
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
     response_class=Response,
     responses={200: {"content": {"image/png": {}}}},
 )
-async def map_overview(request: Request) -> Response:
+async def map_overview(request: Request, db: Database, renderer: Renderer) -> Response:
     """Top-down picture of the live map: placed robots' clouds and keyframe tracks."""
 
     def build() -> bytes:
-        app = request.app.state
-        return app.renderer.overview(map_document(app.db))
+        return renderer.overview(map_document(db))
 
     return Response(await run_in_map_pool(request, build), media_type="image/png")
 
@@ -83,26 +84,26 @@ async def map_overview(request: Request) -> Response:
 @router.get(
     "/map/trajectories",
     response_model=dict[str, list[list[float]]],
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
 )
-async def map_trajectories(request: Request) -> dict:
+async def map_trajectories(request: Request, db: Database, renderer: Renderer) -> dict:
     """Each placed robot's keyframe poses in the reference frame: rows [stamp, tx, ty, tz,
     qx, qy, qz, qw] (TUM order), in time order."""
 
     def build() -> dict:
-        app = request.app.state
-        return app.renderer.trajectories(map_document(app.db))
+        return renderer.trajectories(map_document(db))
 
     return await run_in_map_pool(request, build)
 
 
 @router.get(
-    "/keyframes/{kf_id}/view", response_model=s.KeyframeView, dependencies=[Depends(operator_only)]
+    "/keyframes/{kf_id}/view",
+    response_model=s.KeyframeView,
+    dependencies=[Depends(require_operator)],
 )
-def keyframe_view(request: Request, kf_id: int = KF_ID) -> s.KeyframeView:
+def keyframe_view(db: Database, kf_id: int = KF_ID) -> s.KeyframeView:
     """A keyframe's stored RGB-D view: the images (base64) with the frame's pose and
     intrinsics; 404 for a keyframe posted without one."""
-    db = request.app.state.db
     rgb, depth = db.view_bytes(kf_id)
     frame = db.load_frame(kf_id)
     return s.KeyframeView(
@@ -121,13 +122,13 @@ def keyframe_view(request: Request, kf_id: int = KF_ID) -> s.KeyframeView:
 
 @router.get(
     "/keyframes/{kf_id}/view/{part}",
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
     response_class=Response,
     responses={200: {"content": {"image/jpeg": {}, "image/png": {}}}},
 )
-def keyframe_view_image(request: Request, part: s.ViewPart, kf_id: int = KF_ID) -> Response:
+def keyframe_view_image(db: Database, part: s.ViewPart, kf_id: int = KF_ID) -> Response:
     """One image of a keyframe's stored view as posted (colour JPEG, depth 16-bit PNG)."""
-    rgb, depth = request.app.state.db.view_bytes(kf_id)
+    rgb, depth = db.view_bytes(kf_id)
     data = rgb if part == "rgb" else depth
     return Response(data, media_type=media_type(data))
 

@@ -11,7 +11,11 @@ from fastapi import FastAPI
 from fleetmap.place import PlaceDB, RetrainPolicy
 from fleetmap.place.live import LiveMap
 from fleetmap.place.live_view import MapRenderer
-from fleetmap.services import common
+from fleetmap.place.scene3d import SceneCache
+from fleetmap.services.auth import auth_summary
+from fleetmap.services.docs import install_docs
+from fleetmap.services.http_errors import install_error_handlers
+from fleetmap.services.middleware import install_middleware
 from fleetmap.services.place_db import live_routes, scene_routes
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.routes import router
@@ -70,8 +74,9 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
         where = app.state.db.stats()["db_path"]
         log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)
         if announce:
-            log.warning("place database: %s", common.auth_summary(settings))
+            log.warning("place database: %s", auth_summary(settings))
         app.state.renderer = MapRenderer(app.state.db)
+        app.state.scene3d = SceneCache(app.state.renderer)
         app.state.map_pool = ThreadPoolExecutor(2, thread_name_prefix="map-routes")
         app.state.health_pool = ThreadPoolExecutor(1, thread_name_prefix="healthz")
         app.state.live = start_live_map(app.state.db, settings)
@@ -87,13 +92,14 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
         title="fleetmap place database",
         version="0.1.0",
         lifespan=lifespan,
-        docs_url=None,  # served from local files by common.install_docs
+        docs_url=None,  # served from local files by install_docs
         redoc_url=None,
         description="Keyframes of a robot fleet and the overlaps between their maps.",
     )
     app.state.settings = settings
-    common.install(app)
-    common.install_docs(app)
+    install_error_handlers(app)
+    install_middleware(app)
+    install_docs(app)
     app.include_router(router)
     app.include_router(live_routes.router)
     app.include_router(scene_routes.router)  # the page's 3D view

@@ -7,23 +7,24 @@ import time
 from typing import Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Query, Request, Response, Security
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from fleetmap.errors import BadInput, Forbidden, PayloadTooLarge, Unauthorized
+from fleetmap.errors import BadInput, PayloadTooLarge
 from fleetmap.frame import decode
 from fleetmap.place import Candidate, PlaceDB
 from fleetmap.place.nominate import nominated_overlaps
-from fleetmap.services.common import (
-    ERROR_RESPONSES,
-    any_token,
+from fleetmap.services.auth import (
+    MaybeCaller,
+    RobotWriter,
     auth_summary,
-    bearer,
-    check_access,
-    operator_only,
-    read_body,
+    require_operator,
+    require_token,
 )
+from fleetmap.services.body import read_body
+from fleetmap.services.http_errors import ERROR_RESPONSES
 from fleetmap.services.place_db import schemas as s
+from fleetmap.services.place_db.deps import Database, PlaceSettings
 
 router = APIRouter(responses=ERROR_RESPONSES)
 FRAME_BODY = {
@@ -63,24 +64,20 @@ INGEST_TYPES = ("application/octet-stream", "multipart/form-data")
 VIEW_FIELDS = ("frame", "rgb", "depth")
 
 
-def _db(request: Request) -> PlaceDB:
-    return request.app.state.db
-
-
 @router.get("/healthz", response_model=s.Health, response_model_exclude_none=True)
-async def healthz(request: Request) -> s.Health:
+async def healthz(
+    request: Request, db: Database, settings: PlaceSettings, caller: MaybeCaller
+) -> s.Health:
     """Liveness; with a token (or in an open deployment) the database and index state (on
     a thread of its own: busy map routes never make it wait)."""
     loop = asyncio.get_running_loop()
-    return await loop.run_in_executor(request.app.state.health_pool, _health, request)
+    pool = request.app.state.health_pool
+    return await loop.run_in_executor(pool, _health, db, settings, caller)
 
 
-def _health(request: Request) -> s.Health:
-    db = _db(request)
+def _health(db: PlaceDB, settings, caller: str | None) -> s.Health:
     ok = db.ping()
-    try:
-        check_access(request)
-    except (Unauthorized, Forbidden):  # anonymous on a secured service: liveness only
+    if caller is None:  # anonymous on a secured service: liveness only
         return s.Health(status="ok" if ok else "degraded")
     st = db.stats()
     healthy = ok and not st["storage_errors"] and not st["startup_warning"]
@@ -96,7 +93,7 @@ def _health(request: Request) -> s.Health:
         database_ok=ok,
         index_clusters=st["clusters"],
         index_cluster_max=st["cluster_max"],
-        access_control=auth_summary(request.app.state.settings),
+        access_control=auth_summary(settings),
     )
 
 
@@ -106,13 +103,17 @@ def _health(request: Request) -> s.Health:
     response_model=s.KeyframeCreated,
     openapi_extra=INGEST_BODY,
     responses={200: {"model": s.KeyframeCreated}},
-    dependencies=[Security(bearer)],  # the robot's own token or the operator's
 )
-async def ingest(robot_id: str, request: Request, response: Response) -> s.KeyframeCreated:
+async def ingest(
+    robot_id: str,
+    request: Request,
+    response: Response,
+    db: Database,
+    st: PlaceSettings,
+    _writer: RobotWriter,  # the robot's own token or the operator's, before the body is read
+) -> s.KeyframeCreated:
     """Store one keyframe's frame structure (and its RGB-D view, if sent) durably; 201 once
     it is on disk."""
-    check_access(request, robot=robot_id)  # before the body is read
-    st = request.app.state.settings
     body = await read_body(request, st.max_body_bytes + st.max_view_bytes, INGEST_TYPES)
     view = None
     if body and request.headers.get("content-type", "").lower().startswith("multipart/"):
@@ -124,10 +125,10 @@ async def ingest(robot_id: str, request: Request, response: Response) -> s.Keyfr
             )
     if len(body) > st.max_body_bytes:
         raise PayloadTooLarge(f"Frame of {len(body)} bytes exceeds {st.max_body_bytes}")
-    kf_id, created = await run_in_threadpool(_db(request).add_keyframe, robot_id, body, view)
+    kf_id, created = await run_in_threadpool(db.add_keyframe, robot_id, body, view)
     if not created:
         response.status_code = 200
-    info = _db(request).keyframe_info(kf_id)
+    info = db.keyframe_info(kf_id)
     return s.KeyframeCreated(id=kf_id, robot_id=robot_id, stamp=info["stamp"], created=created)
 
 
@@ -154,45 +155,45 @@ async def _keyframe_parts(request: Request) -> tuple[bytes, dict[str, bytes] | N
     return frame, parts or None
 
 
-@router.get("/robots", response_model=s.Robots, dependencies=[Depends(operator_only)])
-def robots(request: Request) -> s.Robots:
+@router.get("/robots", response_model=s.Robots, dependencies=[Depends(require_operator)])
+def robots(db: Database) -> s.Robots:
     """The robots known, with keyframe counts."""
-    return s.Robots(robots=[s.RobotInfo(**r) for r in _db(request).robots()])
+    return s.Robots(robots=[s.RobotInfo(**r) for r in db.robots()])
 
 
 @router.get(
     "/robots/{robot_id}/keyframes",
     response_model=s.Keyframes,
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
 )
 def keyframes(
     robot_id: str,
-    request: Request,
+    db: Database,
     offset: int = Query(0, ge=0, le=2**62),
     limit: int = Query(1000, ge=1, le=10000),
 ) -> s.Keyframes:
     """A robot's keyframes in time order, paged."""
-    rows = _db(request).keyframes(robot_id, offset, limit)
+    rows = db.keyframes(robot_id, offset, limit)
     return s.Keyframes(robot_id=robot_id, keyframes=[s.KeyframeInfo(**r) for r in rows])
 
 
 @router.delete(
-    "/robots/{robot_id}", response_model=s.Deleted, dependencies=[Depends(operator_only)]
+    "/robots/{robot_id}", response_model=s.Deleted, dependencies=[Depends(require_operator)]
 )
-def delete_robot(robot_id: str, request: Request) -> s.Deleted:
+def delete_robot(robot_id: str, db: Database) -> s.Deleted:
     """Delete a robot with its keyframes and overlaps."""
-    return s.Deleted(robot_id=robot_id, deleted_keyframes=_db(request).delete_robot(robot_id))
+    return s.Deleted(robot_id=robot_id, deleted_keyframes=db.delete_robot(robot_id))
 
 
 @router.get(
     "/keyframes/{kf_id}/frame",
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
-def keyframe_frame(request: Request, kf_id: int = Path(ge=1, le=2**63 - 1)) -> Response:
+def keyframe_frame(db: Database, kf_id: int = Path(ge=1, le=2**63 - 1)) -> Response:
     """The stored encoded frame of one keyframe."""
-    return Response(_db(request).frame_bytes(kf_id), media_type="application/octet-stream")
+    return Response(db.frame_bytes(kf_id), media_type="application/octet-stream")
 
 
 def _winner(db: PlaceDB, c: Candidate) -> s.Winner:
@@ -211,19 +212,18 @@ def _winner(db: PlaceDB, c: Candidate) -> s.Winner:
     "/query",
     response_model=s.QueryAnswer,
     openapi_extra=FRAME_BODY,
-    dependencies=[Depends(any_token)],
+    dependencies=[Depends(require_token)],
 )
 async def query(
     request: Request,
+    db: Database,
+    st: PlaceSettings,
     robot: str | None = None,
     exclude_robot: str | None = None,
     max_stamp: float | None = Query(None, allow_inf_nan=False),
 ) -> s.QueryAnswer:
     """The retrieval cascade's answer for one frame: winner, verified list, stage counts."""
-    body = await read_body(
-        request, request.app.state.settings.max_body_bytes, ("application/octet-stream",)
-    )
-    db = _db(request)
+    body = await read_body(request, st.max_body_bytes, ("application/octet-stream",))
     frame = decode(body)
     flt = db.make_filter(robot, exclude_robot, max_stamp)
     r = await run_in_threadpool(db.query, frame, flt)
@@ -242,10 +242,10 @@ async def query(
     "/overlaps",
     response_model=s.Overlaps,
     response_model_exclude_none=True,
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
 )
 async def overlaps(
-    request: Request,
+    db: Database,
     robot_a: str | None = None,
     robot_b: str | None = None,
     wait: float = Query(0.0, ge=0.0, le=600.0),
@@ -256,7 +256,6 @@ async def overlaps(
     it holds no worker thread); `source` keeps only the cascade's pairs or only those
     co-visible under a registered link; "nominated": not overlaps but where to align when
     none is verified (the BoW-nearest keyframe pairs, computed on request)."""
-    db = _db(request)
     end = time.monotonic() + wait
     while db.pending() and time.monotonic() < end:
         await asyncio.sleep(0.05)
@@ -295,27 +294,25 @@ def _overlaps(db: PlaceDB, robot_a, robot_b, source) -> s.Overlaps:
 @router.put(
     "/links/{robot_a}/{robot_b}",
     response_model=s.LinkOut,
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
 )
-async def put_link(robot_a: str, robot_b: str, body: s.LinkIn, request: Request) -> s.LinkOut:
+async def put_link(robot_a: str, robot_b: str, body: s.LinkIn, db: Database) -> s.LinkOut:
     """Register the alignment of two robots' maps (from the aligner, after its quality
     gate); the keyframe pairs co-visible under it become overlaps with source "link"."""
-    n = await run_in_threadpool(
-        _db(request).add_link, robot_a, robot_b, np.array(body.transform, np.float64)
-    )
+    n = await run_in_threadpool(db.add_link, robot_a, robot_b, np.array(body.transform, np.float64))
     return s.LinkOut(robot_a=robot_a, robot_b=robot_b, link_overlaps=n)
 
 
-@router.get("/links", response_model=list[s.Link], dependencies=[Depends(operator_only)])
-def links(request: Request) -> list[s.Link]:
+@router.get("/links", response_model=list[s.Link], dependencies=[Depends(require_operator)])
+def links(db: Database) -> list[s.Link]:
     """The registered map alignments."""
-    return [s.Link(**x) for x in _db(request).links()]
+    return [s.Link(**x) for x in db.links()]
 
 
-@router.get("/vocabulary", dependencies=[Depends(any_token)])
-def vocabulary(request: Request) -> dict:
+@router.get("/vocabulary", dependencies=[Depends(require_token)])
+def vocabulary(db: Database) -> dict:
     """The vocabulary frames must be built with."""
-    v = _db(request).vocabulary
+    v = db.vocabulary
     return {
         "vocab_id": v.vocab_id,
         "words": v.n_words,
@@ -325,13 +322,13 @@ def vocabulary(request: Request) -> dict:
     }
 
 
-@router.get("/stats", dependencies=[Depends(operator_only)])
-def stats(request: Request) -> dict:
+@router.get("/stats", dependencies=[Depends(require_operator)])
+def stats(db: Database) -> dict:
     """Database and index statistics (cluster balance, pending work, sizes)."""
-    return _db(request).stats()
+    return db.stats()
 
 
-@router.post("/admin/retrain", response_model=s.Retrained, dependencies=[Depends(operator_only)])
-def retrain(request: Request, clusters: int | None = Query(None, ge=2, le=65536)) -> s.Retrained:
+@router.post("/admin/retrain", response_model=s.Retrained, dependencies=[Depends(require_operator)])
+def retrain(db: Database, clusters: int | None = Query(None, ge=2, le=65536)) -> s.Retrained:
     """Retrain the coarse GIST codebook from the stored keyframes; no downtime."""
-    return s.Retrained(**_db(request).retrain(clusters))
+    return s.Retrained(**db.retrain(clusters))

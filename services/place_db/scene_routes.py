@@ -5,15 +5,17 @@ from __future__ import annotations
 
 from pathlib import Path as FsPath
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
 from fleetmap.errors import UnknownRobot
 from fleetmap.mapcloud import ROBOT_COLOURS
 from fleetmap.place.live_view import BASE_VOXEL_M, map_document
-from fleetmap.place.scene3d import DEFAULT_VOXEL_M, SceneCache, overlap_lines
-from fleetmap.services.common import ERROR_RESPONSES, operator_only
+from fleetmap.place.scene3d import DEFAULT_VOXEL_M, overlap_lines
+from fleetmap.services.auth import require_operator
+from fleetmap.services.http_errors import ERROR_RESPONSES
+from fleetmap.services.place_db.deps import Database, Renderer, Scene
 
 router = APIRouter(responses=ERROR_RESPONSES)
 STATIC = FsPath(__file__).parent / "static"
@@ -25,49 +27,41 @@ def install_static(app) -> None:
     app.mount("/static/map3d", StaticFiles(directory=STATIC), name="map3d")
 
 
-def _scene(request: Request) -> SceneCache:
-    state = request.app.state
-    if getattr(state, "scene3d", None) is None:
-        state.scene3d = SceneCache(state.renderer)
-    return state.scene3d
-
-
 @router.get(
     "/map/robots/{robot}/cloud.bin",
-    dependencies=[Depends(operator_only)],
+    dependencies=[Depends(require_operator)],
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
 def robot_cloud(
-    request: Request,
+    db: Database,
+    scene: Scene,
     robot: str = ROBOT,
     voxel: float = Query(DEFAULT_VOXEL_M, ge=BASE_VOXEL_M, le=1.0, description="metres"),
 ) -> Response:
     """One robot's map cloud in ITS OWN map frame (apply `transforms[robot]` of `GET /map`),
     voxelised and capped at 100 000 points: N float32 x y z, then N uint8 r g b (image
     colour); `x-points: N`. Cached until the robot gains views."""
-    store = request.app.state.db.store
-    code = store.robot_code(robot)
+    code = db.store.robot_code(robot)
     if code is None:
         raise UnknownRobot(f"Unknown robot {robot!r}")
-    body = _scene(request).robot_cloud(robot, len(store.view_ids(code)), voxel)
+    body = scene.robot_cloud(robot, len(db.store.view_ids(code)), voxel)
     headers = {"x-points": str(len(body) // 15), "cache-control": "no-store"}
     return Response(body, media_type="application/octet-stream", headers=headers)
 
 
-@router.get("/map/lines", dependencies=[Depends(operator_only)])
-async def map_lines(request: Request) -> dict:
+@router.get("/map/lines", dependencies=[Depends(require_operator)])
+async def map_lines(db: Database, renderer: Renderer) -> dict:
     """The verified overlaps between placed robots as lines between their keyframes'
     camera positions, in the reference frame: rows [robot_a, robot_b, xa, ya, za, xb, yb,
     zb], with the map's version and each robot's colour (RGB in 0..1, as the pictures)."""
 
     def build() -> dict:
-        app = request.app.state
-        m = map_document(app.db)
+        m = map_document(db)
         colours = {
             r: ROBOT_COLOURS[k % len(ROBOT_COLOURS)].tolist() for k, r in enumerate(m["robots"])
         }
-        lines = overlap_lines(app.db, app.renderer, m)
+        lines = overlap_lines(db, renderer, m)
         return {"version": m["version"], "colours": colours, "overlaps": lines}
 
     return await run_in_threadpool(build)

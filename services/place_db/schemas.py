@@ -8,7 +8,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from fleetmap.services.common import Matrix4
+from fleetmap.services.schemas import Matrix4
 
 
 class Health(BaseModel):

@@ -10,7 +10,7 @@ import numpy as np
 
 from fleetmap.align.types import AlignParams, Hypothesis
 from fleetmap.correspondences import Correspondences
-from fleetmap.geometry import apply, invert, transform_error
+from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
 from fleetmap.registration import ransac_rigid
 
@@ -48,6 +48,12 @@ def pair_hypotheses(R: Correspondences, p: AlignParams) -> list[Hypothesis]:
     return out
 
 
+def probe_points(cloud) -> np.ndarray:
+    """About 300 of a cloud's points, (N, 3): what moving a map means, measured."""
+    pts = np.asarray(cloud.points)
+    return pts[:: max(1, len(pts) // 300)]
+
+
 def _distinct(hyps: list[Hypothesis], probe: np.ndarray, min_m: float) -> list[Hypothesis]:
     """Greedy: keep a hypothesis unless it moves the probe points within `min_m` (RMS) of
     one already kept. Order = priority."""
@@ -63,9 +69,9 @@ def _distinct(hyps: list[Hypothesis], probe: np.ndarray, min_m: float) -> list[H
 
 def _judge(h: Hypothesis, cloud_b, cloud_a, views_a, views_b, margin: float, fit_d: float):
     pb, pa = np.asarray(cloud_b.points), np.asarray(cloud_a.points)
-    s1, c1 = free_space_check(apply(h.T_a_b, pb), views_a, margin)
-    s2, c2 = free_space_check(apply(invert(h.T_a_b), pa), views_b, margin)
-    h.supports, h.conflicts = s1 + s2, c1 + c2
+    s1, c1, f1 = free_space_check(apply(h.T_a_b, pb), views_a, margin)
+    s2, c2, f2 = free_space_check(apply(invert(h.T_a_b), pa), views_b, margin)
+    h.supports, h.conflicts, h.firm_conflicts = s1 + s2, c1 + c2, f1 + f2
     h.fitness = overlap_fitness(cloud_b, cloud_a, h.T_a_b, fit_d)
 
 
@@ -95,7 +101,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
-    probe = np.asarray(cb0.points)[:: max(1, len(cb0.points) // 300)]
+    probe = probe_points(cb0)
     hyps = sorted(hyps, key=lambda h: -h.support)
     hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
     log.debug("%d distinct hypotheses", len(hyps))
@@ -116,11 +122,12 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     for T, source in sorted(
         _refinements(best, clouds, p), key=lambda c: surface_rmse(cb1, ca1, c[0], v1)
     ):
-        dt, dr = transform_error(T, best.T_a_b)
+        dt, dr = displacement_rms(T, best.T_a_b, probe), transform_error(T, best.T_a_b)[1]
         if dt <= p.rival_m and dr <= p.rival_deg:  # a refinement, not a jump elsewhere
             polished = Hypothesis(T, best.support, source)
             # rivals were judged unrefined: compare like with like
             polished.supports, polished.conflicts = best.supports, best.conflicts
+            polished.firm_conflicts = best.firm_conflicts
             polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
             return polished, top[1:]
     return best, top[1:]

@@ -20,13 +20,13 @@ import time
 
 import numpy as np
 
-from fleetmap.align.hypotheses import choose, pair_hypotheses, rigid_hypotheses
+from fleetmap.align.hypotheses import choose, pair_hypotheses, probe_points, rigid_hypotheses
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import holdout_residual, spread
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
-from fleetmap.geometry import apply, invert, transform_error
+from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import ViewsCloud, overlap_fitness
 
 log = logging.getLogger(__name__)
@@ -85,9 +85,10 @@ def _align(
     clouds = ViewsCloud(views_a), ViewsCloud(views_b)
     if p.use_icp:
         best, rivals = choose(hyps, R, views_a, views_b, clouds, p)
+        probe = probe_points(clouds[1].at(p.coarse_voxel_m))
         method = "rigid+icp+colour" if best.source.endswith("+colour") else "rigid+icp"
     else:
-        best, rivals = max(hyps, key=lambda h: h.support), []
+        best, rivals, probe = max(hyps, key=lambda h: h.support), [], None
         method = "rigid"
     inl = np.linalg.norm(apply(best.T_a_b, R.X) - R.Y, axis=1) < p.ransac_tol_m
     out = AlignResult(
@@ -99,14 +100,11 @@ def _align(
         fitness=best.fitness,
         hypotheses=[h.summary() for h in [best, *rivals]],
     )
-    need = p.min_inliers
-    if p.use_icp and out.inliers < need:  # does the geometry decide on its own?
-        v = p.voxel_m
-        back = overlap_fitness(clouds[0].at(v), clouds[1].at(v), invert(best.T_a_b), 2 * v)
-        need = p.inliers_needed(best.consistency, min(best.fitness, back))
-    out.reason = (_geometry_gate(best, rivals, p) if p.use_icp else "") or _match_gate(
-        out, R, inl, p, p.spread_needed(depth), need
-    )
+    decisive = p.use_icp and _decisive(best, clouds, p)
+    need = p.min_inliers // 2 if decisive else p.min_inliers
+    out.reason = (
+        _geometry_gate(best, rivals, p, probe, decisive) if p.use_icp else ""
+    ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
     if out.reason:
         return out
     if p.try_mlp and out.inliers >= 30:
@@ -115,17 +113,32 @@ def _align(
     return out
 
 
-def _geometry_gate(best, rivals, p: AlignParams) -> str:
-    """Why the maps' geometry refuses the best hypothesis, or "" if it does not."""
+def _decisive(best, clouds, p: AlignParams) -> bool:
+    """`AlignParams.decisive` for the best hypothesis (A's share on B's measured only
+    where the rest already holds)."""
+    if best.firm_consistency < p.decisive_consistency or best.fitness < 2 * p.min_overlap:
+        return False
+    v = p.voxel_m
+    back = overlap_fitness(clouds[0].at(v), clouds[1].at(v), invert(best.T_a_b), 2 * v)
+    return p.decisive(best.firm_consistency, min(best.fitness, back))
+
+
+def _geometry_gate(best, rivals, p: AlignParams, probe: np.ndarray, decisive: bool) -> str:
+    """Why the maps' geometry refuses the best hypothesis, or "" if it does not. A rival is
+    far when it moves B's points (`probe`) `rival_m` (RMS) or turns `rival_deg` away.
+    Geometry that decides on its own (`decisive`) stands in for the consistency."""
     if best.fitness < p.min_overlap:
         return f"the maps overlap on {best.fitness:.2f} of B's cloud (need {p.min_overlap})"
-    if best.consistency < p.min_consistency:
+    if best.consistency < p.min_consistency and not decisive:
         return (
             f"free-space consistency {best.consistency:.2f} (need {p.min_consistency}): "
             "the aligned maps put surfaces where the cameras saw empty space"
         )
     for h in rivals:
-        dt, dr = transform_error(h.T_a_b, best.T_a_b)
+        dt, dr = (
+            displacement_rms(h.T_a_b, best.T_a_b, probe),
+            transform_error(h.T_a_b, best.T_a_b)[1],
+        )
         if (dt > p.rival_m or dr > p.rival_deg) and h.score >= p.ambiguity * best.score:
             return (
                 f"ambiguous: a rival alignment {dt:.2f} m / {dr:.0f} deg away scores "

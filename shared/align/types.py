@@ -40,7 +40,7 @@ class AlignParams:
     refine: int = 4  # best coarse hypotheses refined at the fine scale
     voxel_m: float = 0.03
     coarse_voxel_m: float = 0.08
-    min_consistency: float = 0.9  # free-space supports / (supports + conflicts)
+    min_consistency: float = 0.7  # free-space supports / (supports + conflicts)
     min_overlap: float = 0.1  # share of B's cloud on A's surfaces
     ambiguity: float = 0.9  # a rival with this share of the best score makes it ambiguous
     rival_m: float = 0.3
@@ -49,7 +49,7 @@ class AlignParams:
     colour_icp: bool = True
     try_mlp: bool = True
     min_spread_rel: float = 0.075  # or this share of the views' median depth, if less
-    decisive_consistency: float = 0.95  # free-space geometry that halves `min_inliers`
+    decisive_consistency: float = 0.95  # firm free-space consistency: geometry that decides
 
     def spread_needed(self, depth_m: float) -> float:
         """The inliers' spread (metres) the gate needs for views whose median depth is
@@ -59,18 +59,18 @@ class AlignParams:
         it frames both shrink with distance."""
         return min(self.min_spread_m, self.min_spread_rel * depth_m)
 
-    def inliers_needed(self, consistency: float, overlap: float) -> int:
-        """Visual inliers the gate needs: `min_inliers`, or half as many where the maps'
-        geometry decides on its own: at most one point in twenty in space the other robot
-        saw empty, and each map's share on the other's (`overlap`: the smaller of the two)
-        at least twice what the gate asks. Both ways, because a small map laid on a large
-        one's planes fits anywhere (four TUM desk frames on the SUN3D room: 48% of the desk
-        on the room at 0.95 consistency, 6% of the room on the desk). Two kinds of evidence,
-        each enough to refuse: a wide baseline leaves a handful of right matches (SUN3D's
-        two recordings: 8 of 489), and the free-space test tells the place apart (right
-        alignments 0.97-1.00, look-alike places at most 0.78, docs/ALIGNER.md)."""
-        decisive = consistency >= self.decisive_consistency and overlap >= 2 * self.min_overlap
-        return self.min_inliers // 2 if decisive else self.min_inliers
+    def decisive(self, firm_consistency: float, overlap: float) -> bool:
+        """Does the maps' geometry decide on its own? At most one point in twenty firmly in
+        space the other robot saw empty (`Hypothesis.firm_consistency`), and each map's
+        share on the other's (`overlap`: the smaller of the two) at least twice what the
+        gate asks. Both ways, because a small map laid on a large one's planes fits
+        anywhere (four TUM desk frames on the SUN3D room: 48% of the desk on the room at
+        0.95, 6% of the room on the desk). Where it does, it stands in for the free-space
+        gate and halves the visual inliers needed: a wide baseline may leave a handful of
+        right matches (SUN3D's two recordings: 8 of 489 agree with the truth), while right
+        alignments score 0.956-1.00 firm and look-alike places up to 0.87
+        (docs/ALIGNER.md)."""
+        return firm_consistency >= self.decisive_consistency and overlap >= 2 * self.min_overlap
 
 
 DEFAULT_ALIGN = AlignParams()
@@ -84,10 +84,15 @@ class Hypothesis:
     fitness: float = 0.0  # share of B's cloud within 2 voxels of A's
     supports: int = 0  # free-space check, both ways
     conflicts: int = 0
+    firm_conflicts: int = 0  # conflicts that hold sideways too (`free_space_check`)
 
     @property
     def consistency(self) -> float:
         return self.supports / max(self.supports + self.conflicts, 1)
+
+    @property
+    def firm_consistency(self) -> float:
+        return self.supports / max(self.supports + self.firm_conflicts, 1)
 
     @property
     def score(self) -> float:
@@ -101,6 +106,7 @@ class Hypothesis:
             "support": self.support,
             "icp_fitness": round(self.fitness, 4),
             "consistency": round(self.consistency, 4),
+            "firm_consistency": round(self.firm_consistency, 4),
             "score": round(self.score, 1),
         }
 

@@ -25,8 +25,7 @@ from fleetmap.place.index import PlaceIndex
 from fleetmap.place.links import LinkOverlaps, pair_link_rows
 from fleetmap.place.replica import ClaimWorker, Follower
 from fleetmap.place.retrain import CodebookUpkeep
-from fleetmap.place.sqlite import SQLiteStore
-from fleetmap.place.store import Pending, Store
+from fleetmap.place.store import Pending, Store, open_store
 from fleetmap.place.types import (
     DEFAULT_CASCADE,
     CascadeParams,
@@ -45,8 +44,8 @@ log = logging.getLogger(__name__)
 class PlaceDB:
     """Keyframes of a fleet, their place index and the overlaps found between robots.
 
-    `store` is a path (SQLite, the embedded default), a postgresql:// URL (replicas over
-    one database: `fleetmap.place.postgres`) or a `Store`."""
+    `store` is where the data lives, as `open_store` takes it (a SQLite file or folder, the
+    embedded default, or a postgresql:// URL: replicas over one database), or a `Store`."""
 
     def __init__(
         self,
@@ -56,14 +55,10 @@ class PlaceDB:
         retrain: RetrainPolicy | None = None,
         background: bool = True,
     ):
-        if isinstance(store, str) and store.startswith(("postgresql://", "postgres://")):
-            from fleetmap.place.postgres import PostgresStore
-
-            store = PostgresStore(store, vocabulary.vocab_id)
-        elif isinstance(store, str | Path):
-            store = SQLiteStore(store, vocabulary.vocab_id)
+        if isinstance(store, str | Path):
+            store = open_store(store, vocabulary.vocab_id)
         self.store = store
-        self.path = getattr(store, "path", None)
+        self.path = store.path
         self.vocabulary = vocabulary
         self.params = params
         self.retrain_policy = retrain or RetrainPolicy()
@@ -72,7 +67,7 @@ class PlaceDB:
         self.index = PlaceIndex(
             vocabulary.gist_centroids if book is None else book, vocabulary.n_words
         )
-        self.shared = getattr(store, "shared", False)
+        self.shared = store.shared
         self.follower = Follower(store, self.index) if self.shared else None
         if self.shared:
             self.worker = ClaimWorker(store, self._claimed)

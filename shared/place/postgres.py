@@ -167,14 +167,7 @@ class PostgresStore:
             if not rows:
                 return
             after = rows[-1][0]
-            yield IndexRows(
-                [r[0] for r in rows],
-                [r[1] for r in rows],
-                [r[2] for r in rows],
-                np.stack([np.frombuffer(r[3], dtype="<f2") for r in rows]),
-                [np.frombuffer(r[4], dtype="<u4") for r in rows],
-                [np.frombuffer(r[5], dtype="<u2") for r in rows],
-            )
+            yield IndexRows.from_rows(rows)
             if len(rows) < batch:
                 return  # that was the last batch: no round trip to find it empty
 

@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 from fleetmap.errors import Unavailable
 from fleetmap.place.index import PlaceIndex
+from fleetmap.place.store import SharedStore
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +22,7 @@ class Follower:
     in a thread and after this replica's own commits, so a query on any replica sees every
     committed keyframe within about `interval_s`."""
 
-    def __init__(self, store, index: PlaceIndex, interval_s: float = 0.1):
+    def __init__(self, store: SharedStore, index: PlaceIndex, interval_s: float = 0.1):
         self.store, self.index, self.interval_s = store, index, interval_s
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -86,7 +87,9 @@ class ClaimWorker:
     """Overlap detection from the store's queue: claim the oldest unprocessed keyframe no
     other replica holds, detect, record, commit. Same face as `OverlapWorker`."""
 
-    def __init__(self, store, compute: Callable[[int], tuple | None], idle_s: float = 0.05):
+    def __init__(
+        self, store: SharedStore, compute: Callable[[int], tuple | None], idle_s: float = 0.05
+    ):
         self.store, self.compute, self.idle_s = store, compute, idle_s
         self.failures = 0
         self._stop = threading.Event()

@@ -5,20 +5,20 @@ take the saved codebook (`Follower`)."""
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 import time
 
 from fleetmap.errors import Conflict
 from fleetmap.place.index import PlaceIndex
+from fleetmap.place.store import Store
 from fleetmap.place.types import RetrainPolicy
 
 log = logging.getLogger(__name__)
 
 
 class CodebookUpkeep:
-    def __init__(self, policy: RetrainPolicy, index: PlaceIndex, store, follower=None):
+    def __init__(self, policy: RetrainPolicy, index: PlaceIndex, store: Store, follower=None):
         self.policy, self.index, self.store, self.follower = policy, index, store, follower
         self._running = threading.Lock()
 
@@ -29,8 +29,7 @@ class CodebookUpkeep:
         try:
             t = time.perf_counter()
             k = n_clusters or self.policy.target_clusters(len(self.index))
-            exclusive = getattr(self.store, "exclusive", None)
-            with exclusive("retraining") if exclusive else contextlib.nullcontext():
+            with self.store.exclusive("retraining"):
                 sizes = self.index.retrain(k)
                 self.store.save_codebook(self.index.codebook)
             if self.follower is not None:

@@ -9,6 +9,7 @@ log from one that did not.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sqlite3
 import threading
@@ -29,8 +30,11 @@ log = logging.getLogger(__name__)
 class SQLiteStore:
     """Robots, keyframes, overlaps, links and codebooks in one SQLite file."""
 
+    shared = False  # one process has the file open (`sqlite_files`' open marker tells)
+
     def __init__(self, path: str | Path, vocab_id: str):
         self.path = Path(path)
+        self.where = str(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         lost_log = files.log_was_lost(self.path)  # before SQLite opens it (a new log)
         self.vocab_id = vocab_id
@@ -77,6 +81,11 @@ class SQLiteStore:
             return None
         return np.frombuffer(row[2], dtype=np.float32).reshape(row[0], row[1])
 
+    @contextlib.contextmanager
+    def exclusive(self, what: str):
+        """This process is the file's only one: always held (`Store.exclusive`)."""
+        yield lambda: True
+
     def save_codebook(self, centroids: np.ndarray) -> None:
         book = np.ascontiguousarray(centroids, np.float32)
         with self._write_lock:
@@ -94,15 +103,7 @@ class SQLiteStore:
             "FROM keyframes ORDER BY id"
         )
         while rows := cur.fetchmany(batch):
-            yield IndexRows(
-                [r[0] for r in rows],
-                [r[1] for r in rows],
-                [r[2] for r in rows],
-                np.stack([np.frombuffer(r[3], dtype="<f2") for r in rows]),
-                [np.frombuffer(r[4], dtype="<u4") for r in rows],
-                [np.frombuffer(r[5], dtype="<u2") for r in rows],
-                [r[0] for r in rows if not r[6]],
-            )
+            yield IndexRows.from_rows(rows)
 
     def add_frames(self, items: list[Pending], on_commit: Callable[[list[Pending]], None]) -> None:
         """Store checked frames durably. Group commit: concurrent callers queue their
@@ -394,7 +395,6 @@ class SQLiteStore:
 
     def _read(self, sql: str, args: tuple = ()) -> sqlite3.Cursor:
         """A read on this thread's own connection: WAL readers never block the writer."""
-        conn = getattr(self._local, "conn", None)
-        if conn is None:
-            conn = self._local.conn = files.connect(self.path)
-        return conn.execute(sql, args)
+        if not hasattr(self._local, "conn"):
+            self._local.conn = files.connect(self.path)
+        return self._local.conn.execute(sql, args)

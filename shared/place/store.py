@@ -2,14 +2,18 @@
 
 `PlaceDB` holds the in-memory index, the overlap worker and the retraining policy; a store
 holds everything durable: robots, keyframes (summary columns and the encoded frame),
-overlaps, links and codebooks. `SQLiteStore` (`fleetmap.place.sqlite`) is the embedded
-default; a second backend implements the same methods.
+overlaps, links and codebooks. `open_store` chooses the backend from where the data lives:
+`SQLiteStore` (`fleetmap.place.sqlite`, the embedded default) for a file or folder,
+`PostgresStore` (`fleetmap.place.postgres`) for a postgresql:// URL. A store that other
+processes write too (`shared`) is also a `SharedStore`: replicas follow it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -42,6 +46,20 @@ class IndexRows:
     bow_counts: list[np.ndarray]
     unprocessed: list[int] = field(default_factory=list)
 
+    @classmethod
+    def from_rows(cls, rows: list[tuple]) -> IndexRows:
+        """From rows (id, robot, stamp, gist, bow_ids, bow_counts[, processed]) as stored:
+        gist float16, BoW word ids uint32 and counts uint16, little-endian bytes."""
+        return cls(
+            [r[0] for r in rows],
+            [r[1] for r in rows],
+            [r[2] for r in rows],
+            np.stack([np.frombuffer(r[3], dtype="<f2") for r in rows]),
+            [np.frombuffer(r[4], dtype="<u4") for r in rows],
+            [np.frombuffer(r[5], dtype="<u2") for r in rows],
+            [r[0] for r in rows if len(r) > 6 and not r[6]],
+        )
+
 
 @dataclass
 class OverlapRow:
@@ -64,11 +82,25 @@ LinkRow = tuple[int, int, int, int, int, int]
 WinnerRow = tuple[int, int, int, int]
 
 
+#: The URL schemes `open_store` opens with PostgreSQL.
+POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+#: The SQLite file `open_store` opens in a folder.
+DB_FILE = "place_db.sqlite"
+
+
 class Store(Protocol):
     """Durable state of the place database. Robot codes are ints the store assigns."""
 
     startup_warning: str  # set when the last run may have lost acknowledged keyframes
     storage_errors: int  # stored frames that failed their checksum when read
+    path: Path | None  # the database file; None for a database server
+    where: str  # where the data lives, for messages: a path or host:port/db, no password
+    shared: bool  # other processes write the same data: a `SharedStore`
+
+    def exclusive(self, what: str) -> AbstractContextManager[Callable[[], bool]]:
+        """Held by one process at a time for `what` ("live map", "retraining"); Conflict
+        if another holds it. Yields `held()`: False once the hold was lost."""
+        ...
 
     def robot_code(self, name: str) -> int | None: ...
     def robot_name(self, code: int) -> str | None: ...
@@ -102,3 +134,29 @@ class Store(Protocol):
     def size_bytes(self) -> int: ...
     def refuse_writes(self) -> None: ...
     def close(self) -> None: ...
+
+
+class SharedStore(Store, Protocol):
+    """A store other processes write too (PostgreSQL): a replica follows their keyframes,
+    deletions and codebooks, and claims keyframes for overlap detection from a queue."""
+
+    def index_rows(self, batch: int = 10000, after: int = 0) -> Iterator[IndexRows]: ...
+    def deletions_after(self, after: int) -> list[tuple[int, int]]: ...
+    def forget_robot(self, code: int) -> None: ...
+    def codebook_version(self) -> int: ...
+    def pending_count(self) -> int: ...
+    def parked(self) -> dict[int, str]: ...
+    def claim(self, compute: Callable[[int], tuple | None]) -> int | None: ...
+
+
+def open_store(url_or_path: str | Path, vocab_id: str) -> Store:
+    """The backend where the data lives: a postgresql:// URL opens PostgreSQL (replicas over
+    one database); anything else SQLite, `DB_FILE` in a folder or else the file named."""
+    if isinstance(url_or_path, str) and url_or_path.startswith(POSTGRES_SCHEMES):
+        from fleetmap.place.postgres import PostgresStore
+
+        return PostgresStore(url_or_path, vocab_id)
+    from fleetmap.place.sqlite import SQLiteStore
+
+    path = Path(url_or_path)
+    return SQLiteStore(path / DB_FILE if path.is_dir() else path, vocab_id)

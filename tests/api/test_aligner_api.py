@@ -30,7 +30,7 @@ def _post_with_file(client, pairs, field: str, data: bytes):
     return client.post("/align", **req)
 
 
-def test_align_returns_the_transform_and_a_merged_ply(client, tum_two_robots):  # noqa: F811
+def test_align_returns_the_transform_and_a_merged_ply(client, tum_two_robots):
     pairs, T_a_b = tum_two_robots
     r = client.post("/align", **_request(pairs, cloud=True))
     assert r.status_code == 200, r.text
@@ -44,7 +44,7 @@ def test_align_returns_the_transform_and_a_merged_ply(client, tum_two_robots):  
 
 
 @pytest.mark.parametrize("method", ["rigid", "affine", "mlp"])
-def test_baseline_methods(client, tum_two_robots, method):  # noqa: F811
+def test_baseline_methods(client, tum_two_robots, method):
     pairs, T_a_b = tum_two_robots
     body = client.post("/align", **_request(pairs, method=method)).json()
     assert body["method"] == method
@@ -52,7 +52,7 @@ def test_baseline_methods(client, tum_two_robots, method):  # noqa: F811
         assert transform_error(np.array(body["transform"]), T_a_b)[0] < 0.1
 
 
-def test_bad_requests_answer_4xx(client, tum_two_robots):  # noqa: F811
+def test_bad_requests_answer_4xx(client, tum_two_robots):
     pairs, _ = tum_two_robots
     req = _request(pairs)
     del req["files"]["b0_depth"]
@@ -92,7 +92,7 @@ def test_bad_requests_answer_4xx(client, tum_two_robots):  # noqa: F811
     assert r.status_code == 422 and "need views_a and views_b" in r.json()["detail"]
 
 
-def test_inline_pair_layout_still_accepted(client, tum_two_robots):  # noqa: F811
+def test_inline_pair_layout_still_accepted(client, tum_two_robots):
     """Pairs carrying their own view metadata, files per pair (the first layout)."""
     pairs, T_true = tum_two_robots
     req = _request(pairs)
@@ -107,7 +107,7 @@ def test_inline_pair_layout_still_accepted(client, tum_two_robots):  # noqa: F81
     assert client.get("/clouds/nope").status_code == 404
 
 
-def test_oversized_body_is_refused(tum_two_robots):  # noqa: F811
+def test_oversized_body_is_refused(tum_two_robots):
     pairs, _ = tum_two_robots
     with TestClient(create_app(Settings(max_body_bytes=1000))) as c:
         r = c.post("/align", **_request(pairs))
@@ -130,7 +130,7 @@ def _png_declaring(width: int, height: int) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
 
-def test_hostile_align_requests_answer_4xx_before_spending_memory(client, tum_two_robots):  # noqa: F811
+def test_hostile_align_requests_answer_4xx_before_spending_memory(client, tum_two_robots):
     """Issue 15's attacks on /align, each a 500 or a multi-GB allocation before."""
     pairs, _ = tum_two_robots
     r = _post_with_file(client, pairs, "a0_rgb", _png_declaring(30000, 30000))
@@ -153,7 +153,7 @@ def test_hostile_align_requests_answer_4xx_before_spending_memory(client, tum_tw
     assert r.status_code == 422 and "bottom row" in r.json()["detail"]
 
 
-def test_chunked_body_is_cut_off_at_the_limit(tum_two_robots):  # noqa: F811
+def test_chunked_body_is_cut_off_at_the_limit(tum_two_robots):
     """The limit held for a declared Content-Length only; chunked, 50 MB went through."""
     pairs, _ = tum_two_robots
     with TestClient(create_app(Settings(max_body_bytes=10_000))) as c:
@@ -165,7 +165,7 @@ def test_chunked_body_is_cut_off_at_the_limit(tum_two_robots):  # noqa: F811
         assert r.status_code == 413 and "10000-byte limit" in r.json()["detail"]
 
 
-def test_pixel_budget_refuses_a_request_larger_than_itself(tum_two_robots):  # noqa: F811
+def test_pixel_budget_refuses_a_request_larger_than_itself(tum_two_robots):
     pairs, _ = tum_two_robots
     with TestClient(create_app(Settings(max_pixels_in_flight=500_000))) as c:
         r = c.post("/align", **_request(pairs))  # two 640x480 views: 1.2 Mpx

@@ -8,9 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from scipy.spatial.transform import Rotation
 
-from fleetmap.align import DEFAULT_ALIGN, align_request
 from fleetmap.dataset import read_recording
 from fleetmap.extract import FrameExtractor, keyframe_indices
 from fleetmap.frame import decode, encode
@@ -20,16 +18,9 @@ from fleetmap.place.live import LiveMap, LiveParams
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
 from fleetmap.view import encode_view
+from tests.helpers import moved, post_with_view, real_align
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "fr1_pair"
-
-
-def moved(deg: float, metres: float) -> np.ndarray:
-    """T_new_old: a robot's map frame turned `deg` about z and shifted `metres` along x."""
-    S = np.eye(4)
-    S[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
-    S[0, 3] = metres
-    return S
 
 
 def robot_keyframes(vocabulary, robot: str, T_new_old: np.ndarray) -> list:
@@ -49,30 +40,11 @@ def settings(request, tmp_path):
     return Settings(data_dir=tmp_path, database=database, max_view_bytes=2_000_000)
 
 
-def post(client, robot: str, frame: bytes, view: dict) -> int:
-    files = {"frame": ("frame", frame, "application/octet-stream")}
-    files |= {k: (k, v, "application/octet-stream") for k, v in view.items()}
-    r = client.post(f"/robots/{robot}/keyframes", files=files)
-    assert r.status_code in (200, 201), r.text
-    return r.status_code
-
-
 def post_bundled_pair(client, vocabulary) -> None:
     """alpha's and bravo's keyframes with their views, both in their own map frames."""
     for robot in ("alpha", "bravo"):
         for frame, view in robot_keyframes(vocabulary, robot, np.eye(4)):
-            post(client, robot, frame, view)
-
-
-def real_align(calls: list):
-    def align(pairs):
-        calls.append(len(pairs))
-        views = {id(v): v.decoded() for pair in pairs for v in pair}
-        return align_request(
-            [(views[id(a)], views[id(b)]) for a, b in pairs], "default", DEFAULT_ALIGN
-        )[0]
-
-    return align
+            post_with_view(client, robot, frame, view)
 
 
 def test_a_deleted_robot_comes_back_fresh(settings, vocabulary):
@@ -95,7 +67,7 @@ def test_a_deleted_robot_comes_back_fresh(settings, vocabulary):
         assert gone["version"] > first["version"] and app.state.db.links() == []
         S = moved(90, 5.0)
         for frame, view in robot_keyframes(vocabulary, "bravo", S):
-            post(client, "bravo", frame, view)
+            post_with_view(client, "bravo", frame, view)
         assert client.get("/overlaps", params={"wait": 60}).json()["graph"]
         live.tick()  # the place of the new robot (none on a stale fit)
         back = client.get("/map").json()
@@ -120,7 +92,7 @@ def test_a_robot_posting_copies_moves_no_one(settings, vocabulary):
         for k, (frame, view) in enumerate(copies):
             f = decode(frame)
             f.robot_id, f.stamp = "evil", 5000.0 + k
-            post(client, "evil", encode(f), view)
+            post_with_view(client, "evil", encode(f), view)
         assert client.get("/overlaps", params={"wait": 60}).json()["graph"]
         live = LiveMap(app.state.db, real_align(calls), LiveParams(settle_s=3600))
         for _ in range(6):
@@ -148,7 +120,7 @@ def test_a_robot_flooding_copies_starves_no_pair(settings, vocabulary):
                 f = decode(copy)
                 f.robot_id, f.stamp = "flood", 100.0 * k + j
                 f.T_map_cam = moved(37.0 * (3 * k + j), float(k + j)) @ f.T_map_cam
-                post(client, "flood", encode(f), view)
+                post_with_view(client, "flood", encode(f), view)
             client.get("/overlaps", params={"wait": 60})
             live.tick()
         pairs = {(p["robot_a"], p["robot_b"]) for p in client.get("/map").json()["pairs"]}

@@ -7,22 +7,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from fleetmap.dataset import read_recording
-from fleetmap.extract import FrameExtractor, extract_recording
 from fleetmap.frame import encode
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
-
-OCTET = {"content-type": "application/octet-stream"}
-
-
-@pytest.fixture(scope="module")
-def frames(sun3d, vocabulary):
-    x = FrameExtractor(vocabulary)
-    return {
-        r: [encode(f) for f in extract_recording(read_recording(sun3d / r), x)]
-        for r in ("robot_a", "robot_b")
-    }
+from tests.helpers import OCTET, post_frame
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
@@ -39,19 +27,18 @@ def client(settings):
         yield c
 
 
-def _post(client, robot, data):
-    return client.post(f"/robots/{robot}/keyframes", content=data, headers=OCTET)
-
-
-def test_ingest_query_and_overlaps(client, frames):
-    for robot, datas in frames.items():
+def test_ingest_query_and_overlaps(client, sun3d_frames):
+    for robot, datas in sun3d_frames.items():
         for d in datas:
-            assert _post(client, robot, d).status_code == 201
+            assert post_frame(client, robot, d).status_code == 201
     robots = {r["robot_id"]: r["keyframes"] for r in client.get("/robots").json()["robots"]}
-    assert robots == {"robot_a": len(frames["robot_a"]), "robot_b": len(frames["robot_b"])}
+    assert robots == {
+        "robot_a": len(sun3d_frames["robot_a"]),
+        "robot_b": len(sun3d_frames["robot_b"]),
+    }
 
     r = client.post(
-        "/query", content=frames["robot_b"][0], headers=OCTET, params={"robot": "robot_a"}
+        "/query", content=sun3d_frames["robot_b"][0], headers=OCTET, params={"robot": "robot_a"}
     ).json()
     assert [s["name"] for s in r["stages"]] == [
         "clusters",
@@ -73,21 +60,21 @@ def test_ingest_query_and_overlaps(client, frames):
     graph = client.get("/overlaps").json()["graph"]
     assert graph[0]["robot_a"] == "robot_a" and graph[0]["pairs"] == len(ov["overlaps"])
     kf = ov["overlaps"][0]["keyframe_b"]
-    assert client.get(f"/keyframes/{kf}/frame").content in frames["robot_a"]
+    assert client.get(f"/keyframes/{kf}/frame").content in sun3d_frames["robot_a"]
 
 
-def test_duplicates_are_idempotent_and_conflicts_refused(client, frames):
-    d = frames["robot_a"][0]
-    first = _post(client, "robot_a", d)
-    again = _post(client, "robot_a", d)
+def test_duplicates_are_idempotent_and_conflicts_refused(client, sun3d_frames):
+    d = sun3d_frames["robot_a"][0]
+    first = post_frame(client, "robot_a", d)
+    again = post_frame(client, "robot_a", d)
     assert (first.status_code, again.status_code) == (201, 200)
     assert first.json()["id"] == again.json()["id"]
-    other = frames["robot_a"][1]
+    other = sun3d_frames["robot_a"][1]
     from fleetmap.frame import decode
 
     f = decode(other)
     f.stamp = decode(d).stamp
-    r = _post(client, "robot_a", encode(f))
+    r = post_frame(client, "robot_a", encode(f))
     assert r.status_code == 409 and "already has a different keyframe" in r.json()["detail"]
 
 
@@ -100,18 +87,18 @@ def test_duplicates_are_idempotent_and_conflicts_refused(client, frames):
         (lambda d: d + bytes(300_000), 413, "exceeds"),
     ],
 )
-def test_bad_bodies_answer_4xx_and_lose_nothing(client, frames, mutate, status, msg):
-    assert _post(client, "robot_a", frames["robot_a"][0]).status_code == 201
-    r = _post(client, "robot_a", mutate(frames["robot_a"][1]))
+def test_bad_bodies_answer_4xx_and_lose_nothing(client, sun3d_frames, mutate, status, msg):
+    assert post_frame(client, "robot_a", sun3d_frames["robot_a"][0]).status_code == 201
+    r = post_frame(client, "robot_a", mutate(sun3d_frames["robot_a"][1]))
     assert r.status_code == status
     assert re.search(msg, r.json()["detail"])
     assert client.get("/robots").json()["robots"][0]["keyframes"] == 1
 
 
-def test_robot_mismatch_unknown_robot_and_bad_params(client, frames):
-    r = _post(client, "robot_b", frames["robot_a"][0])
+def test_robot_mismatch_unknown_robot_and_bad_params(client, sun3d_frames):
+    r = post_frame(client, "robot_b", sun3d_frames["robot_a"][0])
     assert r.status_code == 422 and "posted for 'robot_b'" in r.json()["detail"]
-    assert _post(client, "bad id!", frames["robot_a"][0]).status_code == 422
+    assert post_frame(client, "bad id!", sun3d_frames["robot_a"][0]).status_code == 422
     r = client.get("/overlaps", params={"robot_a": "ghost", "robot_b": "nobody"})
     assert r.status_code == 404 and "ghost" in r.json()["detail"]
     assert client.get("/overlaps", params={"robot_a": "x"}).status_code == 422
@@ -119,11 +106,11 @@ def test_robot_mismatch_unknown_robot_and_bad_params(client, frames):
     assert client.get("/keyframes/12345/frame").status_code == 404
 
 
-def test_delete_robot_and_restart_keep_the_rest(settings, frames):
+def test_delete_robot_and_restart_keep_the_rest(settings, sun3d_frames):
     with TestClient(create_app(settings)) as c:
-        for robot, datas in frames.items():
+        for robot, datas in sun3d_frames.items():
             for d in datas[:4]:
-                assert _post(c, robot, d).status_code == 201
+                assert post_frame(c, robot, d).status_code == 201
         assert c.delete("/robots/robot_b").json()["deleted_keyframes"] == 4
         c.get("/overlaps", params={"wait": 30})
     with TestClient(create_app(settings)) as c:
@@ -135,20 +122,20 @@ def test_delete_robot_and_restart_keep_the_rest(settings, frames):
         assert c.get("/openapi.json").status_code == 200
 
 
-def test_vocabulary_mismatch_is_refused(client, frames):
+def test_vocabulary_mismatch_is_refused(client, sun3d_frames):
     from fleetmap.frame import decode
 
-    f = decode(frames["robot_a"][0])
+    f = decode(sun3d_frames["robot_a"][0])
     f.vocab_id = "0123456789abcdef"
-    r = _post(client, "robot_a", encode(f))
+    r = post_frame(client, "robot_a", encode(f))
     assert r.status_code == 422 and "vocabulary" in r.json()["detail"]
     assert np.isfinite(client.get("/stats").json()["cluster_mean"])
 
 
-def test_links_validate_and_add_co_visible_pairs(client, frames, sun3d):
-    for robot, datas in frames.items():
+def test_links_validate_and_add_co_visible_pairs(client, sun3d_frames, sun3d):
+    for robot, datas in sun3d_frames.items():
         for d in datas:
-            assert _post(client, robot, d).status_code == 201
+            assert post_frame(client, robot, d).status_code == 201
     before = client.get(
         "/overlaps", params={"robot_a": "robot_a", "robot_b": "robot_b", "wait": 60}
     )

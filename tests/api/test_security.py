@@ -11,16 +11,15 @@ from fleetmap.services.aligner.config import Settings as AlignerSettings
 from fleetmap.services.aligner.main import create_app as create_aligner
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
-from tests.unit.test_frame import _mk
+from tests.helpers import OCTET, make_frame
 
-OCTET = {"content-type": "application/octet-stream"}
 OP, TOK_A, TOK_B = "op-secret-123", "robot-a-secret", "robot-b-secret"
 
 
 def _frame(robot: str, stamp: float = 1.0) -> bytes:
     from fleetmap.vocabulary import load_vocabulary
 
-    f = _mk(robot_id=robot, stamp=stamp)
+    f = make_frame(robot_id=robot, stamp=stamp)
     f.vocab_id = load_vocabulary().vocab_id
     return encode(f)
 

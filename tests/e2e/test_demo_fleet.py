@@ -14,6 +14,8 @@ from fleetmap.geometry import apply, pose_from_tum, rotation_angle_deg
 from fleetmap.services.cli import main
 from fleetmap.services.foxglove import read_ply
 
+pytestmark = pytest.mark.slow
+
 DEMO = Path(__file__).resolve().parents[2] / "examples" / "fr1_rpy_fleet"
 ROBOTS = ("alpha", "bravo", "charlie")
 

@@ -18,22 +18,9 @@ import pytest
 from fleetmap.geometry import transform_error
 from fleetmap.services.cli import main
 from tests.conftest import write_robot
-from tests.servers import Service
+from tests.servers import LIVE_FAST, Service
 
-
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory):
-    """A simulated 3-robot fleet (every pair overlaps) and its true transforms."""
-    sim = tmp_path_factory.mktemp("fleet")
-    assert main(["simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
-    return sim, json.loads((sim / "T_true.json").read_text())
-
-
-@pytest.fixture(scope="module")
-def aligner():
-    svc = Service("aligner").start()
-    yield svc.url
-    svc.stop()
+pytestmark = pytest.mark.slow
 
 
 def wall_robot(folder):
@@ -89,13 +76,13 @@ AUTH = {"authorization": f"Bearer {TOKEN}"}
 
 
 @pytest.fixture(scope="module")
-def live(fleet, aligner, tmp_path_factory):
+def live(sim_fleet, aligner_url, tmp_path_factory):
     """A token-protected place database with a merge worker, the fleet and a wall robot
     streamed into it, once every pair is merged and the worker has settled."""
-    sim, truth = fleet
+    sim, truth = sim_fleet
     tmp = tmp_path_factory.mktemp("live")
-    env = {"FLEETMAP_PLACE_DB_OPERATOR_TOKEN": TOKEN, "FLEETMAP_TOKEN": TOKEN}
-    db = Service("place-db", tmp / "db", env=env, args=["--aligner", aligner]).start()
+    env = {"FLEETMAP_PLACE_DB_OPERATOR_TOKEN": TOKEN, "FLEETMAP_TOKEN": TOKEN, **LIVE_FAST}
+    db = Service("place-db", tmp / "db", env=env, args=["--aligner", aligner_url]).start()
     try:
         robots = [str(sim / r) for r in truth] + [str(wall_robot(tmp / "w"))]
         args = ["--token", TOKEN, "stream", *robots, "--place-db", db.url, "--speed", "0"]
@@ -106,9 +93,9 @@ def live(fleet, aligner, tmp_path_factory):
         db.stop()
 
 
-def test_streamed_fleet_is_merged_live_and_written_by_map(live, fleet, tmp_path, capsys):
+def test_streamed_fleet_is_merged_live_and_written_by_map(live, sim_fleet, tmp_path, capsys):
     db, m = live
-    _, truth = fleet
+    _, truth = sim_fleet
     assert m["reference"] == "robot0" and m["robots"] == ["robot0", "robot1", "robot2", "wall"]
     check_truth(m, truth)
     assert m["unmerged"] == [
@@ -250,10 +237,12 @@ def test_operator_page_in_a_real_browser(live):
     assert "robot1" not in dom
 
 
-def test_restart_mid_stream_loses_nothing_and_resumes_the_map(fleet, aligner, tmp_path, capsys):
-    sim, truth = fleet
+def test_restart_mid_stream_loses_nothing_and_resumes_the_map(
+    sim_fleet, aligner_url, tmp_path, capsys
+):
+    sim, truth = sim_fleet
     data = tmp_path / "db"
-    db = Service("place-db", data, args=["--aligner", aligner]).start()
+    db = Service("place-db", data, env=LIVE_FAST, args=["--aligner", aligner_url]).start()
     try:
         assert (
             main(
@@ -272,11 +261,7 @@ def test_restart_mid_stream_loses_nothing_and_resumes_the_map(fleet, aligner, tm
         wait_map(db.url, 2)
         before = settled(db.url)  # aligned on every overlap found
         db.kill()  # no chance to flush anything
-        db = Service(
-            "place-db",
-            data,
-            args=["--aligner", aligner],
-        ).start()
+        db = Service("place-db", data, env=LIVE_FAST, args=["--aligner", aligner_url]).start()
         m = httpx.get(db.url + "/map").json()
         assert m["version"] == before["version"] and m["transforms"] == before["transforms"]
         # the rest of the stream (the robots' earlier keyframes again: idempotent)

@@ -4,9 +4,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from fleetmap.geometry import pose_from_tum, transform_error
-from fleetmap.placement import spanning_placement
 from fleetmap.services.cli import main
 
 PLY_ROW = np.dtype(
@@ -60,12 +60,10 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys, caplog):
     assert len(traj) == 2 and traj[1].startswith("1305031102.275800")
 
 
-def test_merge_sun3d_pair_recovers_ground_truth(sun3d, tmp_path, capsys):
+@pytest.mark.slow
+def test_merge_sun3d_pair_recovers_ground_truth(sun3d, sun3d_merge):
     """Two real robots, wide baseline, self-similar room (issue 5's real-data target)."""
-    out = tmp_path / "out"
-    args = ["merge", f"A={sun3d / 'robot_a'}", f"B={sun3d / 'robot_b'}", "--out", str(out)]
-    assert main(args) == 0
-    report = json.loads((out / "report.json").read_text())
+    _, report = sun3d_merge
     assert report["unmerged"] == [], report["fits"]
     dt, dr = transform_error(np.array(report["transforms"]["B"]), np.loadtxt(sun3d / "T_a_b.txt"))
     assert dt < 0.05 and dr < 2.0, (dt, dr)
@@ -101,28 +99,11 @@ def test_merge_reports_bad_input(tmp_path, capsys):
     assert "must differ" in capsys.readouterr().err
 
 
-def test_spanning_placement_chains_strongest_links_and_leaves_isolated_robots():
-    def shift(x):
-        T = np.eye(4)
-        T[0, 3] = x
-        return T
-
-    edges = {
-        ("A", "B"): {"T_a_b": shift(1), "inliers": 50},
-        ("B", "C"): {"T_a_b": shift(2), "inliers": 80},
-        ("A", "C"): {"T_a_b": shift(10), "inliers": 5},
-    }
-    placed, chain = spanning_placement(["A", "B", "C", "D"], edges)
-    assert set(placed) == {"A", "B", "C"}
-    assert chain["C"] == ["A", "B", "C"] and placed["C"][0, 3] == 3.0
-
-
-def test_merge_simulated_three_robot_fleet(tmp_path, capsys):
+@pytest.mark.slow
+def test_merge_simulated_three_robot_fleet(sim_fleet, tmp_path, capsys):
     """`fleetmap simulate` then `fleetmap merge`: every robot placed within 5 cm / 2 deg of
     the true transform between map frames, through the overlap graph."""
-    sim, out = tmp_path / "fleet", tmp_path / "out"
-    assert main(["simulate", str(sim), "--robots", "3", "--frames", "16"]) == 0
-    truth = json.loads((sim / "T_true.json").read_text())
+    (sim, truth), out = sim_fleet, tmp_path / "out"
     assert main(["merge", *(str(sim / r) for r in truth), "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["unmerged"] == [] and report["reference"] == "robot0"
@@ -151,6 +132,7 @@ def _mean_map_error(robot_dir: Path, T: np.ndarray, T_true: np.ndarray) -> float
     return float(np.linalg.norm(apply(T, pts) - apply(T_true, pts), axis=1).mean())
 
 
+@pytest.mark.slow
 def test_merge_hololens_and_a_robot_from_another_building(hololens, sun3d, tmp_path):
     """Two real HoloLens robots that revisit a kitchen merge within 2.5 cm mean map-point
     error (head tracking holds 1-2 cm); a third robot recorded in another building (the

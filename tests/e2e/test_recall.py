@@ -4,11 +4,14 @@ database's nominated keyframe pairs, and a robot from another building stays unm
 import json
 
 import numpy as np
+import pytest
 
 from fleetmap.dataset import cut_recording
 from fleetmap.geometry import transform_error
 from fleetmap.services.cli import main
 from tests.conftest import random_frame
+
+pytestmark = pytest.mark.slow
 
 
 def test_unverified_revisit_is_merged_and_another_building_is_not(hololens, sun3d, tmp_path):

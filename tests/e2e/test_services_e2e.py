@@ -14,12 +14,9 @@ from tests.servers import running
 
 
 @pytest.fixture(scope="module")
-def services(tmp_path_factory):
-    with (
-        running("place-db", tmp_path_factory.mktemp("db"), "PLACE_DB_URL") as db,
-        running("aligner", url_env="ALIGNER_URL") as al,
-    ):
-        yield db, al
+def services(tmp_path_factory, aligner_url):
+    with running("place-db", tmp_path_factory.mktemp("db"), "PLACE_DB_URL") as db:
+        yield db, aligner_url
 
 
 def test_ingest_overlaps_align_recovers_the_known_transform(services, tum_robot_dirs, capsys):

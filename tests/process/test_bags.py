@@ -118,18 +118,19 @@ def test_depth_in_metres_and_ambiguous_topics(sun3d, tmp_path):
         bag_to_tum(bag, tmp_path / "x", BagTopics(pose="/nope"))
 
 
-def test_merge_with_a_ros2_bag_robot_gives_the_folder_transform(sun3d, tmp_path):
-    """The issue's target: within 1 mm of the same recording given as a folder."""
+@pytest.mark.slow
+def test_merge_with_a_ros2_bag_robot_gives_the_folder_transform(sun3d, sun3d_merge, tmp_path):
+    """The issue's target: within 1 mm of the same recording given as a folder (the
+    session's merge of the folders, `sun3d_merge`)."""
     from fleetmap.services.cli import main
 
     bag = tmp_path / "robot_b_bag"
     write_bag(sun3d / "robot_b", bag)
-    out_bag, out_dir = tmp_path / "with_bag", tmp_path / "with_dir"
+    out_bag = tmp_path / "with_bag"
     a = f"A={sun3d / 'robot_a'}"
     assert main(["-q", "merge", a, f"B={bag}", "-o", str(out_bag)]) == 0
-    assert main(["-q", "merge", a, f"B={sun3d / 'robot_b'}", "-o", str(out_dir)]) == 0
     T_bag = np.array(json.loads((out_bag / "report.json").read_text())["transforms"]["B"])
-    T_dir = np.array(json.loads((out_dir / "report.json").read_text())["transforms"]["B"])
+    T_dir = np.array(sun3d_merge[1]["transforms"]["B"])
     dt, dr = transform_error(T_bag, T_dir)
     assert dt < 0.001 and dr < 0.05, (dt, dr)
 

@@ -11,17 +11,17 @@ import time
 
 import httpx
 import numpy as np
+import pytest
 
 from fleetmap.client import align_request
+from tests.helpers import OCTET
 from tests.servers import Service
 
-OCTET = {"content-type": "application/octet-stream"}
 
-
-def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots):  # noqa: F811
+@pytest.mark.slow
+def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots, aligner_url):
     rng = random.Random(7)
     db = Service("place-db", tmp_path / "db").start()
-    aligner = Service("aligner").start()
     acked: dict[int, bytes] = {}
     link = [None]
     statuses: list[int] = []
@@ -60,7 +60,7 @@ def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots
                 statuses.append(r.status_code)
                 if r.status_code == 200:
                     link[0] = k
-                a = httpx.post(f"{aligner.url}/align", timeout=120, **align_request(pairs))
+                a = httpx.post(f"{aligner_url}/align", timeout=120, **align_request(pairs))
                 statuses.append(a.status_code)
             except httpx.TransportError:
                 time.sleep(0.2)
@@ -94,4 +94,3 @@ def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots
         assert "Traceback" not in db.read_log()
     finally:
         db.stop()
-        aligner.stop()

@@ -11,11 +11,8 @@ import pytest
 from fleetmap.client import PlaceDBClient
 from fleetmap.place import PlaceDB
 from tests import pg
-from tests.api.test_place_db_api import frames  # noqa: F401  (fixture)
-from tests.process.test_robustness import _ingest
-from tests.servers import Service
-
-OCTET = {"content-type": "application/octet-stream"}
+from tests.helpers import OCTET, ingest
+from tests.servers import LIVE_FAST, Service
 
 
 def _replica(url: str, tmp_path, k: int) -> Service:
@@ -34,24 +31,24 @@ def _pairs(overlaps) -> set:
     return {(o["stamp_a"], o["stamp_b"]) for o in overlaps}
 
 
-def test_replicas_share_keyframes_and_compute_overlaps_once(pg_url, tmp_path, frames):  # noqa: F811
+def test_replicas_share_keyframes_and_compute_overlaps_once(pg_url, tmp_path, sun3d_frames):
     one, two = _replica(pg_url, tmp_path, 1), _replica(pg_url, tmp_path, 2)
     try:
         with (
             httpx.Client(base_url=one.url, timeout=60) as a,
             httpx.Client(base_url=two.url, timeout=60) as b,
         ):
-            for d in frames["robot_a"]:  # robot A through replica one
+            for d in sun3d_frames["robot_a"]:  # robot A through replica one
                 assert (
                     a.post("/robots/robot_a/keyframes", content=d, headers=OCTET).status_code == 201
                 )
-            for d in frames["robot_b"]:  # robot B through replica two
+            for d in sun3d_frames["robot_b"]:  # robot B through replica two
                 assert (
                     b.post("/robots/robot_b/keyframes", content=d, headers=OCTET).status_code == 201
                 )
             # a keyframe acknowledged by one is found by queries on the other
-            q = b.post("/query", content=frames["robot_a"][3], headers=OCTET).json()
-            assert q["database_size"] == len(frames["robot_a"]) + len(frames["robot_b"])
+            q = b.post("/query", content=sun3d_frames["robot_a"][3], headers=OCTET).json()
+            assert q["database_size"] == len(sun3d_frames["robot_a"]) + len(sun3d_frames["robot_b"])
             assert q["winner"] is not None and q["winner"]["robot_id"] == "robot_a"
             params = {"robot_a": "robot_a", "robot_b": "robot_b", "wait": 60}
             on_one = a.get("/overlaps", params=params).json()
@@ -66,13 +63,13 @@ def test_replicas_share_keyframes_and_compute_overlaps_once(pg_url, tmp_path, fr
         two.stop()
 
 
-def test_same_overlaps_on_either_backend(pg_url, tmp_path, frames, vocabulary):  # noqa: F811
+def test_same_overlaps_on_either_backend(pg_url, tmp_path, sun3d_frames, vocabulary):
     found = {}
     for name, store in (("sqlite", tmp_path / "p.sqlite"), ("postgres", pg_url)):
         db = PlaceDB(store, vocabulary, background=False)
         try:
             for robot in ("robot_a", "robot_b"):
-                db.add_keyframes(robot, frames[robot])
+                db.add_keyframes(robot, sun3d_frames[robot])
             db.process_pending()
             found[name] = {
                 (o.stamp_a, o.stamp_b, o.inliers) for o in db.overlaps("robot_a", "robot_b")
@@ -87,7 +84,7 @@ def test_sigkill_of_a_replica_loses_no_acknowledged_keyframe(pg_url, tmp_path, f
     acked, errors = [], []
     robots = list(fleet_frames.items())
     threads = [
-        threading.Thread(target=_ingest, args=(svc.url, r, fs, acked, errors))
+        threading.Thread(target=ingest, args=(svc.url, r, fs, acked, errors))
         for k, (r, fs) in enumerate(robots[:6])
         for svc in [(one, two)[k % 2]]
     ]
@@ -117,14 +114,14 @@ def test_sigkill_of_a_replica_loses_no_acknowledged_keyframe(pg_url, tmp_path, f
 
 
 @pytest.mark.skipif(not pg.available(), reason="PostgreSQL binaries not found")
-def test_postgres_restart_is_503_then_served_again(tmp_path, frames):  # noqa: F811
+def test_postgres_restart_is_503_then_served_again(tmp_path, sun3d_frames):
     cluster = pg.Cluster().start()
     try:
         url = cluster.database()
         svc = _replica(url, tmp_path, 1)
         try:
             with httpx.Client(base_url=svc.url, timeout=60) as c:
-                d0, d1 = frames["robot_a"][:2]
+                d0, d1 = sun3d_frames["robot_a"][:2]
                 assert (
                     c.post("/robots/robot_a/keyframes", content=d0, headers=OCTET).status_code
                     == 201
@@ -155,15 +152,17 @@ def test_postgres_restart_is_503_then_served_again(tmp_path, frames):  # noqa: F
         cluster.remove()
 
 
-def test_a_keyframe_failing_detection_is_parked_and_the_rest_go_on(pg_url, frames, vocabulary):  # noqa: F811
+def test_a_keyframe_failing_detection_is_parked_and_the_rest_go_on(
+    pg_url, sun3d_frames, vocabulary
+):
     """A stored frame corrupted: its detection raises; after three attempts it is parked
     (listed, out of the queue) and every other keyframe is processed."""
     import psycopg
 
     db = PlaceDB(pg_url, vocabulary, background=False)
     try:
-        ids = [kf for kf, _ in db.add_keyframes("robot_a", frames["robot_a"])]
-        ids += [kf for kf, _ in db.add_keyframes("robot_b", frames["robot_b"])]
+        ids = [kf for kf, _ in db.add_keyframes("robot_a", sun3d_frames["robot_a"])]
+        ids += [kf for kf, _ in db.add_keyframes("robot_b", sun3d_frames["robot_b"])]
         with psycopg.connect(pg_url, autocommit=True) as con:
             con.execute("UPDATE keyframes SET data = '\\x00'::bytea WHERE id = %s", (ids[3],))
         db.process_pending()
@@ -175,22 +174,19 @@ def test_a_keyframe_failing_detection_is_parked_and_the_rest_go_on(pg_url, frame
         db.close()
 
 
-def test_replicas_merge_live_once_and_both_serve_the_map(pg_url, tmp_path):
+@pytest.mark.slow
+def test_replicas_merge_live_once_and_both_serve_the_map(pg_url, tmp_path, sim_fleet, aligner_url):
     """Two replicas with a merge worker each over one database: a simulated fleet streamed
     through both (comma-separated URLs) is merged within 5 cm / 2 deg of the truth, every
     pair aligned by one replica only (the advisory lock), and both serve the same map."""
-    import json
-
     import numpy as np
 
     from fleetmap.geometry import transform_error
     from fleetmap.services.cli import main
 
-    sim = tmp_path / "fleet"
-    assert main(["-q", "simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
-    truth = json.loads((sim / "T_true.json").read_text())
-    aligner = Service("aligner").start()
-    env = {"FLEETMAP_PLACE_DB_DATABASE": pg_url, "FLEETMAP_PLACE_DB_ALIGNER": aligner.url}
+    sim, truth = sim_fleet
+    env = {"FLEETMAP_PLACE_DB_DATABASE": pg_url, "FLEETMAP_PLACE_DB_ALIGNER": aligner_url}
+    env |= LIVE_FAST
     one = Service("place-db", tmp_path / "r1", env=env).start()
     two = Service("place-db", tmp_path / "r2", env=env).start()
     try:
@@ -218,5 +214,5 @@ def test_replicas_merge_live_once_and_both_serve_the_map(pg_url, tmp_path):
         started = sum(s.read_log().count("live map: aligning") for s in (one, two))
         assert started == sum(p["attempts"] for p in m["pairs"])  # no pair aligned twice
     finally:
-        for s in (one, two, aligner):
+        for s in (one, two):
             s.stop()

@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from fleetmap.frame import decode
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
-from tests.api.test_place_db_api import OCTET, _post, frames  # noqa: F401  (fixture)
+from tests.helpers import OCTET, post_frame
 
 
 @pytest.fixture
@@ -40,33 +40,33 @@ def _with_pose(data: bytes, T: np.ndarray) -> bytes:
     return body + struct.pack("<I", zlib.crc32(body))
 
 
-def test_an_all_zero_pose_is_refused_at_ingest(client, frames):  # noqa: F811
+def test_an_all_zero_pose_is_refused_at_ingest(client, sun3d_frames):
     """Was 201, then every link for the pair answered 500 (singular matrix)."""
-    r = _post(client, "robot_a", _with_pose(frames["robot_a"][0], np.zeros((4, 4))))
+    r = post_frame(client, "robot_a", _with_pose(sun3d_frames["robot_a"][0], np.zeros((4, 4))))
     assert r.status_code == 400 and "bottom row" in r.json()["detail"]
-    scaled = _with_pose(frames["robot_a"][0], np.diag([3.0, 3.0, 3.0, 1.0]))
-    r = _post(client, "robot_a", scaled)
+    scaled = _with_pose(sun3d_frames["robot_a"][0], np.diag([3.0, 3.0, 3.0, 1.0]))
+    r = post_frame(client, "robot_a", scaled)
     assert r.status_code == 400 and "rigid" in r.json()["detail"]
     assert client.get("/robots").json()["robots"] == []  # nothing stored
 
 
-def test_out_of_range_query_parameters_are_4xx(client, frames):  # noqa: F811
+def test_out_of_range_query_parameters_are_4xx(client, sun3d_frames):
     """?offset >= 2^63 was a 500; ?max_stamp=nan was accepted."""
-    _post(client, "robot_a", frames["robot_a"][0])
+    post_frame(client, "robot_a", sun3d_frames["robot_a"][0])
     r = client.get("/robots/robot_a/keyframes", params={"offset": 2**63})
     assert r.status_code == 422
     r = client.post(
-        "/query", content=frames["robot_a"][0], headers=OCTET, params={"max_stamp": "nan"}
+        "/query", content=sun3d_frames["robot_a"][0], headers=OCTET, params={"max_stamp": "nan"}
     )
     assert r.status_code == 422
 
 
-def test_a_corrupted_stored_frame_is_a_storage_error_not_the_clients(tmp_path, frames):  # noqa: F811
+def test_a_corrupted_stored_frame_is_a_storage_error_not_the_clients(tmp_path, sun3d_frames):
     """16 bytes corrupted in storage: GET returned the wrong bytes with 200 and a valid
     query got a 400 blaming the client. Now: 500 naming the keyframe, counted in /healthz,
     and queries still answered from the other keyframes."""
     with TestClient(create_app(Settings(data_dir=tmp_path))) as c:
-        ids = [_post(c, "robot_a", d).json()["id"] for d in frames["robot_a"]]
+        ids = [post_frame(c, "robot_a", d).json()["id"] for d in sun3d_frames["robot_a"]]
     db_file = next(tmp_path.glob("*.sqlite*"))
     con = sqlite3.connect(db_file)
     data = bytearray(con.execute("SELECT data FROM keyframes WHERE id=?", (ids[0],)).fetchone()[0])
@@ -80,9 +80,9 @@ def test_a_corrupted_stored_frame_is_a_storage_error_not_the_clients(tmp_path, f
         assert r.json()["error"] == "StorageCorrupt"
         h = c.get("/healthz").json()
         assert h["storage_errors"] == 1 and h["status"] == "degraded"
-        q = c.post("/query", content=frames["robot_a"][1], headers=OCTET)
+        q = c.post("/query", content=sun3d_frames["robot_a"][1], headers=OCTET)
         assert q.status_code == 200
-        assert c.get(f"/keyframes/{ids[1]}/frame").content == frames["robot_a"][1]
+        assert c.get(f"/keyframes/{ids[1]}/frame").content == sun3d_frames["robot_a"][1]
 
 
 def test_secured_healthz_tells_anonymous_callers_liveness_only(tmp_path):
@@ -123,7 +123,7 @@ def test_a_token_in_the_query_string_never_reaches_the_log(tmp_path):
 
 def test_a_keyframe_failing_in_the_worker_is_parked_and_blocks_no_other(
     tmp_path,
-    frames,  # noqa: F811
+    sun3d_frames,
     vocabulary,
 ):
     """A keyframe whose overlap detection raises (here: its stored frame corrupted) is
@@ -131,8 +131,8 @@ def test_a_keyframe_failing_in_the_worker_is_parked_and_blocks_no_other(
     from fleetmap.place import PlaceDB
 
     db = PlaceDB(tmp_path / "p.sqlite", vocabulary, background=False)
-    ids = [db.add_keyframe("robot_a", d)[0] for d in frames["robot_a"]]
-    ids += [db.add_keyframe("robot_b", d)[0] for d in frames["robot_b"]]
+    ids = [db.add_keyframe("robot_a", d)[0] for d in sun3d_frames["robot_a"]]
+    ids += [db.add_keyframe("robot_b", d)[0] for d in sun3d_frames["robot_b"]]
     with db.store._write_lock:
         db.store._db.execute("UPDATE keyframes SET data=zeroblob(64) WHERE id=?", (ids[3],))
     db.process_pending()
@@ -164,14 +164,14 @@ def test_a_damaged_database_file_is_one_line_not_a_traceback(tmp_path):
 
 
 @pytest.mark.parametrize("damage", ["delete", "truncate"])
-def test_a_lost_write_ahead_log_after_a_crash_is_reported(tmp_path, frames, damage):  # noqa: F811
+def test_a_lost_write_ahead_log_after_a_crash_is_reported(tmp_path, sun3d_frames, damage):
     """A truncated or deleted WAL silently lost acknowledged keyframes, with no log line."""
     import httpx
 
     from tests.servers import Service
 
     svc = Service("place-db", tmp_path / "db").start()
-    for d in frames["robot_a"][:6]:
+    for d in sun3d_frames["robot_a"][:6]:
         r = httpx.post(svc.url + "/robots/robot_a/keyframes", content=d, headers=OCTET)
         assert r.status_code == 201
     svc.kill()  # SIGKILL: the acknowledged keyframes live in the write-ahead log
@@ -190,7 +190,7 @@ def test_a_lost_write_ahead_log_after_a_crash_is_reported(tmp_path, frames, dama
     assert "keyframes were lost" in again.read_log()
 
 
-def test_queries_and_links_racing_deletes_never_answer_5xx(tmp_path, frames):  # noqa: F811
+def test_queries_and_links_racing_deletes_never_answer_5xx(tmp_path, sun3d_frames):
     """/query racing DELETE /robots was a 500 (KeyError), PUT /links racing it an
     IntegrityError 500. Bounded: 4 rounds of delete and re-ingest under queries and links."""
     import threading
@@ -207,19 +207,19 @@ def test_queries_and_links_racing_deletes_never_answer_5xx(tmp_path, frames):  #
         with httpx.Client(base_url=svc.url, timeout=60) as c:
             while not stop.is_set():
                 statuses.append(
-                    c.post("/query", content=frames["robot_b"][0], headers=OCTET).status_code
+                    c.post("/query", content=sun3d_frames["robot_b"][0], headers=OCTET).status_code
                 )
                 statuses.append(c.put("/links/robot_a/robot_b", json=eye).status_code)
 
     try:
         with httpx.Client(base_url=svc.url, timeout=60) as c:
-            for d in frames["robot_a"]:
+            for d in sun3d_frames["robot_a"]:
                 c.post("/robots/robot_a/keyframes", content=d, headers=OCTET)
             workers = [threading.Thread(target=hammer) for _ in range(2)]
             for w in workers:
                 w.start()
             for _ in range(4):
-                for d in frames["robot_b"]:
+                for d in sun3d_frames["robot_b"]:
                     c.post("/robots/robot_b/keyframes", content=d, headers=OCTET)
                 assert c.delete("/robots/robot_b").status_code == 200
             stop.set()
@@ -267,15 +267,15 @@ def test_slowloris_connections_are_closed(tmp_path):
         svc.stop()
 
 
-def test_frames_sent_as_anything_but_octet_stream_are_415(client, frames):  # noqa: F811
+def test_frames_sent_as_anything_but_octet_stream_are_415(client, sun3d_frames):
     """Any Content-Type was accepted."""
     r = client.post(
         "/robots/robot_a/keyframes",
-        content=frames["robot_a"][0],
+        content=sun3d_frames["robot_a"][0],
         headers={"content-type": "text/plain"},
     )
     assert r.status_code == 415 and "application/octet-stream" in r.json()["detail"]
-    assert _post(client, "robot_a", frames["robot_a"][0]).status_code == 201
+    assert post_frame(client, "robot_a", sun3d_frames["robot_a"][0]).status_code == 201
 
 
 def test_json_logs_carry_request_fields_and_a_start_line(tmp_path):

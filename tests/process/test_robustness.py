@@ -8,31 +8,15 @@ import time
 import httpx
 
 from fleetmap.frame import decode
+from tests.helpers import OCTET, ingest
 from tests.servers import Service
-
-OCTET = {"content-type": "application/octet-stream"}
-
-
-def _ingest(url, robot, frames, acked, errors, stop=None):
-    with httpx.Client(base_url=url, timeout=30) as c:
-        for data in frames:
-            if stop is not None and stop.is_set():
-                return
-            try:
-                r = c.post(f"/robots/{robot}/keyframes", content=data, headers=OCTET)
-            except httpx.TransportError:
-                return  # the server died mid-request: not acknowledged
-            if r.status_code == 201:
-                acked.append((robot, r.json()["id"], data))
-            else:
-                errors.append((robot, r.status_code, r.text))
 
 
 def test_sigkill_mid_ingest_loses_no_acknowledged_keyframe(tmp_path, fleet_frames):
     svc = Service("place-db", tmp_path / "db").start()
     acked, errors = [], []
     threads = [
-        threading.Thread(target=_ingest, args=(svc.url, r, fs, acked, errors))
+        threading.Thread(target=ingest, args=(svc.url, r, fs, acked, errors))
         for r, fs in list(fleet_frames.items())[:6]
     ]
     for t in threads:
@@ -84,7 +68,7 @@ def test_eight_robots_ingest_while_two_operators_query(tmp_path, fleet_frames):
 
     try:
         robots = [
-            threading.Thread(target=_ingest, args=(svc.url, r, fs, acked, errors))
+            threading.Thread(target=ingest, args=(svc.url, r, fs, acked, errors))
             for r, fs in fleet_frames.items()
         ]
         ops = [threading.Thread(target=operator, args=(k,)) for k in range(2)]
@@ -109,7 +93,7 @@ def test_sigterm_finishes_in_flight_writes_and_exits_cleanly(tmp_path, fleet_fra
     svc = Service("place-db", tmp_path / "db", env={"FLEETMAP_LOG_FORMAT": "json"}).start()
     acked, errors = [], []
     threads = [
-        threading.Thread(target=_ingest, args=(svc.url, r, fs, acked, errors))
+        threading.Thread(target=ingest, args=(svc.url, r, fs, acked, errors))
         for r, fs in list(fleet_frames.items())[:4]
     ]
     for t in threads:

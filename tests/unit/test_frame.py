@@ -10,6 +10,7 @@ from fleetmap.dataset import load_depth, load_rgb, read_recording
 from fleetmap.errors import BadFrame, BadInput
 from fleetmap.extract import FrameExtractor
 from fleetmap.frame import MAX_FEATURES, MAX_FRAME_BYTES, Frame, check_robot_id, decode, encode
+from tests.helpers import make_frame
 
 
 @pytest.fixture(scope="module")
@@ -80,21 +81,6 @@ def test_header_lies_are_caught(real_frame):
         decode(body + struct.pack("<I", zlib.crc32(body)))
 
 
-def _mk(**kw):
-    rng = np.random.default_rng(0)
-    base = dict(
-        robot_id="r1",
-        stamp=1.0,
-        gist=rng.random(384).astype(np.float16),
-        keypoints=rng.random((5, 2)).astype(np.float32) * 100,
-        descriptors=rng.integers(0, 255, (5, 128), dtype=np.uint8),
-        bow_ids=np.array([1, 2], np.uint32),
-        bow_counts=np.array([3, 2], np.uint16),
-    )
-    base.update(kw)
-    return Frame(**base)
-
-
 @pytest.mark.parametrize(
     "kw, msg",
     [
@@ -130,11 +116,11 @@ def _mk(**kw):
 )
 def test_validation_names_the_problem(kw, msg):
     with pytest.raises(BadInput, match=msg):
-        _mk(**kw)
+        make_frame(**kw)
 
 
 def test_minimal_frame_without_depth_round_trips():
-    f = _mk()
+    f = make_frame()
     g = decode(encode(f))
     assert g.points is None and g.T_map_cam is None
     assert g.gist.tobytes() == f.gist.tobytes()
@@ -150,7 +136,7 @@ def test_random_bytes_raise_only_clean_errors(data):
 @settings(max_examples=300, deadline=None)
 @given(st.integers(min_value=0), st.integers(min_value=0, max_value=255))
 def test_mutated_frames_raise_only_clean_errors_or_decode(pos, byte):
-    buf = bytearray(encode(_mk()))
+    buf = bytearray(encode(make_frame()))
     buf[pos % len(buf)] = byte
     try:
         decode(bytes(buf))
@@ -172,7 +158,7 @@ def _reframed(buf: bytes, header: bytes | None = None, flags: int | None = None)
 def test_hostile_headers_are_clean_errors():
     """Issue 15: a header nested 5,000 deep was a 500 (RecursionError); unknown flag bits
     were accepted."""
-    buf = encode(_mk())
+    buf = encode(make_frame())
     with pytest.raises(BadFrame, match="nested too deep"):
         decode(_reframed(buf, header=b"[" * 5000 + b"]" * 5000))
     with pytest.raises(BadFrame, match="Unknown frame flag bits 0x80"):

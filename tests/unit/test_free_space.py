@@ -1,5 +1,5 @@
-"""The free-space test: a point the camera saw through is a conflict, a point a few pixels
-beside a depth edge is not (the tolerance holds sideways as along the ray)."""
+"""The free-space test: a point the camera saw through is a conflict, and a firm one unless
+a surface lies within the tolerance sideways (a point a few pixels beside a depth edge)."""
 
 import numpy as np
 
@@ -23,21 +23,21 @@ def at_pixel(u: float, v: float, z: float) -> np.ndarray:
 
 def test_a_point_on_a_surface_is_supported_and_one_in_seen_space_conflicts():
     view = edge_view()
-    assert free_space_check(at_pixel(500, 240, 3.0), [view]) == (1, 0)
+    assert free_space_check(at_pixel(500, 240, 3.0), [view]) == (1, 0, 0)
     # 1.5 m in front of the wall, far from the box: the camera saw the wall through it
-    assert free_space_check(at_pixel(500, 240, 1.5), [view]) == (0, 1)
+    assert free_space_check(at_pixel(500, 240, 1.5), [view]) == (0, 1, 1)
     # behind the box: occluded, tells nothing
-    assert free_space_check(at_pixel(100, 240, 2.0), [view]) == (0, 0)
+    assert free_space_check(at_pixel(100, 240, 2.0), [view]) == (0, 0, 0)
 
 
-def test_a_point_beside_a_depth_edge_is_no_conflict():
+def test_a_point_beside_a_depth_edge_is_no_firm_conflict():
     """The box's edge point, 3 pixels into the wall's side (0.6 cm at 1 m, within the
     tolerance there: 5 cm + 2% of the wall's 3 m): the wall at its pixel is 2 m farther,
-    but the box is within the tolerance sideways. Judged along the ray alone it was a
-    conflict."""
+    but the box is within the tolerance sideways: a conflict along the ray, not a firm
+    one."""
     view = edge_view()
     point = at_pixel(323, 240, 1.0)
-    assert free_space_check(point, [view]) == (0, 0)
-    assert free_space_check(point, [SeenDepth(view)]) == (0, 0)  # the kept form, same answer
-    # 60 pixels into the wall's side (12 cm at 1 m): beyond it, a conflict
-    assert free_space_check(at_pixel(380, 240, 1.0), [view]) == (0, 1)
+    assert free_space_check(point, [view]) == (0, 1, 0)
+    assert free_space_check(point, [SeenDepth(view)]) == (0, 1, 0)  # kept form, same answer
+    # 60 pixels into the wall's side (12 cm at 1 m): beyond it, a firm conflict
+    assert free_space_check(at_pixel(380, 240, 1.0), [view]) == (0, 1, 1)

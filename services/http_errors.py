@@ -1,0 +1,58 @@
+"""Errors over HTTP: every domain error answered by one handler, and the error body's
+schema each route's OpenAPI entry names."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field
+from starlette.requests import ClientDisconnect
+
+from fleetmap.errors import FleetmapError
+from fleetmap.wire import error_body, status_of
+
+log = logging.getLogger("fleetmap.http")
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(examples=["Unknown robot 'alpha'"])
+    error: str = Field(examples=["UnknownRobot"], description="the error class")
+
+
+#: Every error status the services answer, for each route's OpenAPI entry.
+ERROR_RESPONSES = {
+    code: {"model": ErrorBody, "description": text}
+    for code, text in {
+        400: "undecodable frame",
+        401: "missing or unknown token",
+        403: "a valid token without the right",
+        404: "unknown robot, keyframe or cloud",
+        408: "the request body stalled",
+        409: "conflicting re-send, or a robot deleted meanwhile",
+        413: "body, image or pixel budget too large",
+        415: "compressed body or wrong Content-Type",
+        422: "valid but unusable input",
+        500: "stored data failed its integrity check",
+        503: "busy (Retry-After) or a dependency unreachable",
+    }.items()
+}
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """One exception handler for every domain error (its status and body from
+    `fleetmap.wire`), and one for a client that hung up mid-body."""
+
+    @app.exception_handler(FleetmapError)
+    async def _domain_error(request: Request, exc: FleetmapError) -> JSONResponse:
+        headers = {}
+        if getattr(exc, "retry_after", None) is not None:
+            headers["retry-after"] = str(max(1, round(exc.retry_after)))
+        return JSONResponse(status_code=status_of(exc), content=error_body(exc), headers=headers)
+
+    @app.exception_handler(ClientDisconnect)
+    async def _gone(request: Request, exc: ClientDisconnect) -> Response:
+        """A client that hung up mid-body: one INFO line, no traceback (nobody reads this)."""
+        log.info("%s %s: client disconnected mid-request", request.method, request.url.path)
+        return Response(status_code=400)

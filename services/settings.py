@@ -1,0 +1,27 @@
+"""What both services' settings share: where secrets may come from, and the refusal of
+parameter names from before the settings were nested."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+from fleetmap.errors import BadInput
+
+
+def refuse_flat_names(prefix: str, params_class, nested: str, renamed=()) -> None:
+    """Parameters are nested settings now (PREFIX_ALIGN__MIN_INLIERS); a variable of the
+    old flat form (PREFIX_MIN_INLIERS) is refused with its new name, never ignored."""
+    names = [(f.name, f.name) for f in dataclasses.fields(params_class)] + list(renamed)
+    for was, now in names:
+        old = f"{prefix}{was.upper()}"
+        if old in os.environ:
+            raise BadInput(f"{old} is no longer read: set {prefix}{nested}__{now.upper()} instead")
+
+
+def secrets_dir() -> str | None:
+    """Where settings may also come from files, one per variable named like it in lower case
+    (`fleetmap_place_db_operator_token`): FLEETMAP_SECRETS_DIR, else Docker's /run/secrets
+    where it exists. Tokens need not sit in the environment or in a compose file."""
+    path = os.environ.get("FLEETMAP_SECRETS_DIR") or "/run/secrets"
+    return path if os.path.isdir(path) else None

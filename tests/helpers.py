@@ -1,0 +1,81 @@
+"""Helpers several test modules share (fixtures live in conftest.py)."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fleetmap.frame import Frame
+
+OCTET = {"content-type": "application/octet-stream"}
+
+
+def make_frame(**kw) -> Frame:
+    """A small valid Frame of random content; `kw` overrides its fields."""
+    rng = np.random.default_rng(0)
+    base = dict(
+        robot_id="r1",
+        stamp=1.0,
+        gist=rng.random(384).astype(np.float16),
+        keypoints=rng.random((5, 2)).astype(np.float32) * 100,
+        descriptors=rng.integers(0, 255, (5, 128), dtype=np.uint8),
+        bow_ids=np.array([1, 2], np.uint32),
+        bow_counts=np.array([3, 2], np.uint16),
+    )
+    base.update(kw)
+    return Frame(**base)
+
+
+def moved(deg: float, metres: float) -> np.ndarray:
+    """T_new_old: a robot's map frame turned `deg` about z and shifted `metres` along x."""
+    S = np.eye(4)
+    S[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    S[0, 3] = metres
+    return S
+
+
+def post_frame(client, robot, data):
+    """A keyframe alone (octet-stream)."""
+    return client.post(f"/robots/{robot}/keyframes", content=data, headers=OCTET)
+
+
+def post_with_view(client, robot: str, frame: bytes, view: dict) -> int:
+    """A keyframe with its RGB-D view (multipart), 200 or 201."""
+    files = {"frame": ("frame", frame, "application/octet-stream")}
+    files |= {k: (k, v, "application/octet-stream") for k, v in view.items()}
+    r = client.post(f"/robots/{robot}/keyframes", files=files)
+    assert r.status_code in (200, 201), r.text
+    return r.status_code
+
+
+def real_align(calls: list):
+    """The aligner's pipeline in-process, as `LiveMap` calls it; each call's number of
+    pairs appended to `calls`."""
+    from fleetmap.align import DEFAULT_ALIGN, align_request
+
+    def align(pairs):
+        calls.append(len(pairs))
+        views = {id(v): v.decoded() for pair in pairs for v in pair}
+        return align_request(
+            [(views[id(a)], views[id(b)]) for a, b in pairs], "default", DEFAULT_ALIGN
+        )[0]
+
+    return align
+
+
+def ingest(url, robot, frames, acked, errors, stop=None) -> None:
+    """Post `frames` for `robot`; (robot, id, data) of each 201 into `acked`, else into
+    `errors`; a transport error (the server killed) ends the robot."""
+    with httpx.Client(base_url=url, timeout=30) as c:
+        for data in frames:
+            if stop is not None and stop.is_set():
+                return
+            try:
+                r = c.post(f"/robots/{robot}/keyframes", content=data, headers=OCTET)
+            except httpx.TransportError:
+                return  # the server died mid-request: not acknowledged
+            if r.status_code == 201:
+                acked.append((robot, r.json()["id"], data))
+            else:
+                errors.append((robot, r.status_code, r.text))
