@@ -2,7 +2,10 @@
 
 Global stage: the query's GIST goes to its m nearest coarse clusters (an IVF index,
 faiss, vectors stored as float16), every keyframe in those inverted lists within GIST
-distance `tr` is a candidate, the closest `max_candidates` are kept. Local stage: the
+distance `tr` is a candidate, the closest `max_candidates` are kept. Beside it, the inverted
+file over visual words (`postings`) adds up to `ivf_candidates` keyframes that share the
+query's most informative words, so a revisit whose GIST falls outside the probed clusters
+is still considered; both sources go through the same local stage. Local stage: the
 Bhattacharyya distance between bags of words (eq. 2.9) filters and ranks them, the best
 few are matched with SIFT and, with N > 8 matches, verified by a fundamental-matrix
 RANSAC. The winner is the verified candidate with most inliers, or none.
@@ -102,6 +105,10 @@ def run_cascade(
     t0 = time.perf_counter()
     flt = flt or Filter()
     cands, stages = index.global_stage(query.gist, p, flt)
+    extra, stage = index.word_stage(
+        (query.bow_ids, query.bow_counts), query.gist, p, flt, [c.kf_id for c in cands]
+    )
+    cands, stages = cands + extra, [*stages, stage]
     verified, local = local_stage(query, cands, index, load, p)
     return CascadeResult(
         verified[0] if verified else None,

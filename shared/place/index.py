@@ -1,6 +1,7 @@
 """The in-memory place index: GIST vectors in a faiss IVF index (float16), bags of words in
-CSR form, keyed by keyframe id. About 3 KB per keyframe; local features stay in storage.
-The global stage of the cascade (thesis Algorithm 3) and the BoW distances run here."""
+CSR form and their inverted file (`postings`), keyed by keyframe id. About 4 KB per
+keyframe; local features stay in storage. The global stage of the cascade (thesis
+Algorithm 3), the inverted-file stage and the BoW distances run here."""
 
 from __future__ import annotations
 
@@ -12,31 +13,11 @@ import faiss
 import numpy as np
 
 from fleetmap.errors import BadInput
+from fleetmap.place.postings import Grow as _Grow
+from fleetmap.place.postings import Postings
 from fleetmap.place.types import Candidate, CascadeParams, Filter, Stage
 
 log = logging.getLogger(__name__)
-
-
-class _Grow:
-    """Append-only numpy buffer with amortised doubling."""
-
-    def __init__(self, dtype, width: int | None = None):
-        shape = (1024,) if width is None else (1024, width)
-        self.buf = np.zeros(shape, dtype=dtype)
-        self.n = 0
-
-    def extend(self, values: np.ndarray) -> None:
-        need = self.n + len(values)
-        if need > len(self.buf):
-            new = np.zeros((max(need, 2 * len(self.buf)),) + self.buf.shape[1:], self.buf.dtype)
-            new[: self.n] = self.buf[: self.n]
-            self.buf = new
-        self.buf[self.n : need] = values
-        self.n = need
-
-    @property
-    def view(self) -> np.ndarray:
-        return self.buf[: self.n]
 
 
 class PlaceIndex:
@@ -55,6 +36,7 @@ class PlaceIndex:
         self.bow_ptr.extend(np.zeros(1, np.int64))
         self.bow_ids = _Grow(np.uint32)
         self.bow_counts = _Grow(np.uint16)
+        self.postings = Postings(n_words)
         self.n_alive = 0
         self.ivf = self._make_ivf(codebook)
 
@@ -101,6 +83,7 @@ class PlaceIndex:
         with self._lock:
             if self.ids.n and len(kf_ids) and kf_ids[0] <= self.ids.view[-1]:
                 raise BadInput(f"keyframe ids must increase: {kf_ids[0]} after {self.ids.view[-1]}")
+            first_slot = self.ids.n
             self.ids.extend(kf_ids)
             self.robots.extend(np.asarray(robots, np.int32))
             self.stamps.extend(np.asarray(stamps, np.float64))
@@ -111,6 +94,10 @@ class PlaceIndex:
             if len(bow_ids):
                 self.bow_ids.extend(np.concatenate(bow_ids).astype(np.uint32))
                 self.bow_counts.extend(np.concatenate(bow_counts).astype(np.uint16))
+                new = slice(self.bow_ids.n - int(lengths.sum()), self.bow_ids.n)
+                self.postings.add(
+                    first_slot, lengths, self.bow_ids.view[new], self.bow_counts.view[new]
+                )
             self.ivf.add_with_ids(gists.astype(np.float32), kf_ids)
             self.n_alive += len(kf_ids)
 
@@ -124,6 +111,7 @@ class PlaceIndex:
             self.n_alive -= len(slots)
             if len(slots):
                 self.ivf.remove_ids(faiss.IDSelectorBatch(self.ids.view[slots]))
+                self.postings.remove(self.alive.view)
             return len(slots)
 
     def _slots(self, kf_ids: np.ndarray) -> np.ndarray:
@@ -219,6 +207,46 @@ class PlaceIndex:
             Stage("clusters", in_clusters, 1000 * (t1 - t0) / 2),
             Stage("gist_threshold", len(cands), 1000 * ((t1 - t0) / 2 + t2 - t1)),
         ]
+
+    def word_stage(
+        self,
+        query_bow: tuple[np.ndarray, np.ndarray],
+        gist: np.ndarray,
+        p: CascadeParams,
+        flt: Filter,
+        known: list[int],
+    ) -> tuple[list[Candidate], Stage]:
+        """Inverted file: among the keyframes holding one of the query's `p.ivf_words` most
+        informative words (tf-idf), those passing the filter and not `known` (the GIST
+        stage's candidates), the `p.ivf_candidates` of highest Bhattacharyya coefficient
+        over those words. The stage keeps both sources' candidates."""
+        t0 = time.perf_counter()
+        q_ids, q_counts = query_bow
+        if p.ivf_candidates <= 0 or len(q_ids) == 0 or np.sum(q_counts) == 0:
+            return [], Stage("inverted_file", len(known), 0.0)
+        with self._lock:
+            words = self.postings.informative(q_ids, q_counts, p.ivf_words)
+            score = self.postings.score(q_ids, q_counts, words, self.ids.n)
+            score[self._slots(np.asarray(known, np.int64))] = 0.0  # nominated already
+            # the filter over the contiguous columns: no gather of ~every keyframe's row
+            slots = np.flatnonzero(flt.mask(self.robots.view, self.stamps.view) & (score > 0))
+            k = p.ivf_candidates
+            if len(slots) > k:  # the k best without sorting every keyframe
+                slots = slots[np.argpartition(-score[slots], k - 1)[:k]]
+            slots = slots[np.argsort(-score[slots], kind="stable")]
+            g = self.gists.view[slots].astype(np.float32)
+            dist = np.linalg.norm(g - np.asarray(gist, np.float32).reshape(1, -1), axis=1)
+            cands = [
+                Candidate(
+                    int(self.ids.view[s]),
+                    int(self.robots.view[s]),
+                    float(self.stamps.view[s]),
+                    float(d),
+                )
+                for s, d in zip(slots, dist, strict=True)
+            ]
+        ms = 1000 * (time.perf_counter() - t0)
+        return cands, Stage("inverted_file", len(known) + len(cands), ms)
 
     def bow_distances(
         self, q_ids: np.ndarray, q_counts: np.ndarray, kf_ids: np.ndarray

@@ -16,6 +16,9 @@ class CascadeParams:
     m_clusters: int = 64
     gist_threshold: float = 0.75
     max_candidates: int = 300
+    # inverted file beside the GIST clusters (docs/PLACE_DB.md says why these values)
+    ivf_words: int = 8  # the query's most informative words whose postings are read
+    ivf_candidates: int = 12  # keyframes it may add to the GIST stage's (= max_verify)
     bow_threshold: float = 0.92
     max_verify: int = 12
     max_verify_per_robot: int = 4

@@ -43,6 +43,7 @@ def test_ingest_query_and_overlaps(client, sun3d_frames):
     assert [s["name"] for s in r["stages"]] == [
         "clusters",
         "gist_threshold",
+        "inverted_file",
         "bow",
         "sift_matches",
         "epipolar",
