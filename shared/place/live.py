@@ -20,7 +20,6 @@ it was tried on nominated pairs).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import threading
@@ -113,10 +112,9 @@ class LiveMap:
     def _run(self) -> None:
         """Lead the merging while this process holds the store's "live map" lock (always
         on SQLite; one replica at a time on PostgreSQL)."""
-        exclusive = getattr(self.db.store, "exclusive", None)
         while not self._stop.is_set():
             try:
-                with exclusive("live map") if exclusive else contextlib.nullcontext() as held:
+                with self.db.store.exclusive("live map") as held:
                     self._lead(held)
             except Conflict:
                 pass  # another replica is merging
