@@ -323,3 +323,25 @@ def aligner_url() -> str:
 
     with running("aligner", url_env="ALIGNER_URL") as url:
         yield url
+
+
+@pytest.fixture(scope="session")
+def corridor_frames(corridor, vocabulary):
+    """The RTAB-Map corridor's 84 images as frame structures, by image number (stamp)."""
+    from fleetmap.extract import FrameExtractor
+
+    x = FrameExtractor(vocabulary)
+    return {
+        i: x("corridor", float(i), cv2.imread(str(corridor / "images" / f"{i}.jpg")))
+        for i in range(1, 85)
+    }
+
+
+def corridor_revisits(corridor) -> dict[int, set[int]]:
+    """The corridor's ground truth: query image -> the images it revisits."""
+    gt: dict[int, set[int]] = {}
+    for line in (corridor / "gt_loop_pairs.csv").read_text().splitlines():
+        if line and not line.startswith("#"):
+            q, m = map(int, line.split(","))
+            gt.setdefault(q, set()).add(m)
+    return gt

@@ -2,38 +2,19 @@
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import pytest
 
-from fleetmap.extract import FrameExtractor
 from fleetmap.frame import encode
 from fleetmap.place import CascadeParams, Filter, PlaceDB
 from fleetmap.place import postings as postings_module
 from fleetmap.place.cascade import run_cascade
 from fleetmap.place.index import PlaceIndex
 from fleetmap.place.postings import Postings
+from tests.conftest import corridor_revisits
 
 # GIST stage that keeps nothing: only the inverted file can nominate
 NO_GIST = CascadeParams(gist_threshold=1e-6)
-
-
-def _gt_pairs(corridor):
-    gt = {}
-    for line in (corridor / "gt_loop_pairs.csv").read_text().splitlines():
-        if line and not line.startswith("#"):
-            q, m = map(int, line.split(","))
-            gt.setdefault(q, set()).add(float(m))
-    return gt
-
-
-@pytest.fixture(scope="module")
-def corridor_frames(corridor, vocabulary):
-    x = FrameExtractor(vocabulary)
-    return {
-        i: x("corridor", float(i), cv2.imread(str(corridor / "images" / f"{i}.jpg")))
-        for i in range(1, 85)
-    }
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +28,7 @@ def corridor_index(corridor_frames, vocabulary):
 def test_revisit_the_gist_stage_misses_is_found_through_the_inverted_file(
     corridor, corridor_frames, corridor_index
 ):
-    gt = _gt_pairs(corridor)
+    gt = corridor_revisits(corridor)
     load = corridor_frames.__getitem__
     hits, false = 0, []
     for q in range(41, 85):

@@ -1,41 +1,22 @@
 """The retrieval cascade and the place database core on real data."""
 
-import cv2
 import numpy as np
 import pytest
 
 from fleetmap.dataset import read_recording
-from fleetmap.extract import FrameExtractor
 from fleetmap.frame import encode
 from fleetmap.place import CascadeParams, Filter, PlaceDB
 from fleetmap.place.cascade import run_cascade
 from fleetmap.place.index import PlaceIndex
 from fleetmap.vocabulary import bhattacharyya
+from tests.conftest import corridor_revisits
 from tests.covis import covisibility
-
-
-def _gt_pairs(corridor):
-    gt = {}
-    for line in (corridor / "gt_loop_pairs.csv").read_text().splitlines():
-        if line and not line.startswith("#"):
-            q, m = map(int, line.split(","))
-            gt.setdefault(q, set()).add(m)
-    return gt
-
-
-@pytest.fixture(scope="module")
-def corridor_frames(corridor, vocabulary):
-    x = FrameExtractor(vocabulary)
-    return {
-        i: x("corridor", float(i), cv2.imread(str(corridor / "images" / f"{i}.jpg")))
-        for i in range(1, 85)
-    }
 
 
 def test_corridor_second_lap_finds_true_revisits_and_no_false_winner(
     corridor, corridor_frames, vocabulary, tmp_path
 ):
-    gt = _gt_pairs(corridor)
+    gt = corridor_revisits(corridor)
     db = PlaceDB(tmp_path / "c.sqlite", vocabulary, background=False)
     for i in range(1, 85):
         db.add_keyframe("corridor", encode(corridor_frames[i]))
