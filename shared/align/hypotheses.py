@@ -123,7 +123,10 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
         _refinements(best, clouds, p), key=lambda c: surface_rmse(cb1, ca1, c[0], v1)
     ):
         dt, dr = displacement_rms(T, best.T_a_b, probe), transform_error(T, best.T_a_b)[1]
-        if dt <= p.rival_m and dr <= p.rival_deg:  # a refinement, not a jump elsewhere
+        kept = _visual_cost(T, R, 1.5 * p.ransac_tol_m)[1]
+        # a refinement, not a jump elsewhere, and one the matches that proposed it still
+        # back (coloured ICP on bent maps slid 0.22 m off every match: docs/ALIGNER.md)
+        if dt <= p.rival_m and dr <= p.rival_deg and 2 * kept >= best.support:
             polished = Hypothesis(T, best.support, source)
             # rivals were judged unrefined: compare like with like
             polished.supports, polished.conflicts = best.supports, best.conflicts

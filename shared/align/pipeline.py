@@ -28,6 +28,7 @@ from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import ViewsCloud, overlap_fitness
+from fleetmap.registration import kabsch
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +91,7 @@ def _align(
     else:
         best, rivals, probe = max(hyps, key=lambda h: h.support), [], None
         method = "rigid"
-    inl = np.linalg.norm(apply(best.T_a_b, R.X) - R.Y, axis=1) < p.ransac_tol_m
+    inl = agreeing(best.T_a_b, R, p.ransac_tol_m)
     out = AlignResult(
         False,
         "",
@@ -111,6 +112,21 @@ def _align(
         _try_mlp(out, R, inl, clouds[1], p)
     out.merged, out.reason = True, "passed the quality gate"
     return out
+
+
+def agreeing(T: np.ndarray, R: Correspondences, tol: float) -> np.ndarray:
+    """The matches (bool mask) that agree with the chosen alignment T: within `tol` of it,
+    or, where more, within `tol` of the least-squares fit of those within 1.5 `tol`. ICP on
+    two whole maps that bend settles a few centimetres off where the matched views are
+    (HoloLens walk with 1 deg/m of drift: 63 matches within 12 cm, 11 within 8 cm; their own
+    fit 8 cm from T). The geometry gate judges T itself."""
+    r = np.linalg.norm(apply(T, R.X) - R.Y, axis=1)
+    inl, near = r < tol, r < 1.5 * tol
+    if near.sum() < 3:
+        return inl
+    own = kabsch(R.X[near], R.Y[near])
+    inl_own = np.linalg.norm(apply(own, R.X) - R.Y, axis=1) < tol
+    return inl_own if inl_own.sum() > inl.sum() else inl
 
 
 def _decisive(best, clouds, p: AlignParams) -> bool:

@@ -5,8 +5,9 @@ the reference robot's map frame.
   with sigmas that grow with the motion between them as VIO drift does (issue 22: up to
   1 deg/m of yaw and 1 % of scale), so a short step is stiff and a long one bends;
 - loop closures (`fleetmap.fleet.closures`): relative camera poses from 3D-3D matches,
-  within one robot and between robots, and the pairwise fits as closures at the place
-  database's overlaps;
+  within one robot and between robots (each with the information of its own inlier
+  points), and the pairwise fits as closures at the place database's overlaps of robots
+  that no such closure links;
 - a prior on the reference robot's first keyframe (the gauge).
 
 Robust: graduated non-convexity with a truncated least-squares loss (Yang et al. 2020, as
@@ -114,6 +115,8 @@ class FleetGraph:
                 (p.depth_m, p.depth_deg) if c.source == "depth" else (p.closure_m, p.closure_deg)
             )
             noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([np.deg2rad(deg)] * 3 + [m] * 3))
+            if c.information is not None and c.source == "features":
+                noise = gtsam.noiseModel.Gaussian.Information(c.information)
             a, b = self.node(c.robot_a, c.i), self.node(c.robot_b, c.j)
             graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(c.T_a_b), noise))
 

@@ -12,13 +12,16 @@ import json
 import numpy as np
 import pytest
 
+from fleetmap.align.pipeline import align_views
 from fleetmap.dataset import read_recording
 from fleetmap.extract import keyframe_indices
 from fleetmap.extract_pool import extract_keyframes
 from fleetmap.fleet.closures import Closure
 from fleetmap.fleet.correct import correct_fleet, fleet_closures
 from fleetmap.fleet.drift import write_drifted
-from fleetmap.geometry import apply, invert
+from fleetmap.geometry import apply, displacement_rms, invert
+from fleetmap.mapcloud import ViewsCloud
+from fleetmap.pairs import frame_at, load_view, pair_views
 from fleetmap.registration import kabsch
 from fleetmap.services.cli import main
 
@@ -75,9 +78,10 @@ def test_merged_ate_is_below_half_the_rigid_floor(drifted):
         sq.append((apply(kabsch(own, truth[r][:, :3, 3]), own) - truth[r][:, :3, 3]) ** 2)
     floor = float(np.sqrt(np.concatenate(sq).sum(1).mean()))
     assert floor > 0.05  # the maps are bent: no rigid placement lays them right
-    # issue 22 asks for half the floor; this walk at 1 deg/m measures 0.52 of it (6.2 against
-    # 12.0 cm; the rigid placement 21.4), BENCHMARKS.md: the robots meet at few places
-    assert merged < 0.6 * floor, (merged, floor)
+    # issue 22 asks for half the floor; this walk at 1 deg/m measures 0.47 of it (5.6 against
+    # 12.0 cm; the rigid placement 21.4) whichever overlaps the place database verified
+    # (with the rigid fit as closures too: 0.52 or 1.5 of it, by the overlaps)
+    assert merged < 0.55 * floor, (merged, floor)
     for r in "AB":  # a correction this large is reported
         assert report["robots"][r]["drift_correction"]["moved_max_m"] > 0.05
 
@@ -126,3 +130,26 @@ def test_without_drift_the_rigid_placement_stands(keyframes):
     for r, c in fleet.robots.items():
         gap = np.linalg.norm(c.T_ref_kf[:, :3, 3] - true_kf[r][:, :3, 3], axis=1).max()
         assert not c.applied and gap < 0.002, (r, gap, c.bend_m)
+
+
+def test_bent_maps_merge_from_overlaps_that_once_refused(drifted):
+    """Verified overlaps found in one CI run (the place database's order of arrival varies):
+    coloured ICP slid the fit 0.22 m off every match and the gate refused ("0 inlier
+    correspondences"). A refinement must keep the matches that proposed it, and matches
+    count as they agree with each other around the fit (`agreeing`)."""
+    dirs, truth = drifted[:2]
+    recs = {r: read_recording(dirs[r], robot_id=r) for r in "AB"}
+    ov = [
+        {"stamp_a": a, "stamp_b": b, "inliers": n}
+        for a, b, n in ((9007.0, 9502.4, 13), (9037.0, 9500.0, 40), (9037.2, 9500.0, 64))
+    ]
+    kfi = {r: keyframe_indices(recs[r]) for r in "AB"}
+    res = align_views(pair_views(ov, recs["A"], recs["B"], kfi["A"], kfi["B"], 12))
+    assert res.merged, res.reason
+    # where the overlap is, the fit places B's view as its true pose does (bent maps: a
+    # rigid fit holds at one place at best)
+    ia, ib = frame_at(recs["A"], 9037.2), frame_at(recs["B"], 9500.0)
+    Ta, Tb = recs["A"].frames[ia].T_map_cam, recs["B"].frames[ib].T_map_cam
+    T_local = Ta @ invert(truth["A"][ia]) @ truth["B"][ib] @ invert(Tb)
+    pb = np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
+    assert displacement_rms(res.T_a_b, T_local, pb) < 0.15
