@@ -95,10 +95,10 @@ def pair_correspondences(
     )
     if v.inliers == 0:
         return Correspondences.concat([])
-    return _lift(a, b, fa, fb, v.idx_a, v.idx_b, index)
+    return lift(a, b, fa, fb, v.idx_a, v.idx_b, index)
 
 
-def _lift(a, b, fa, fb, ia, ib, index: int) -> Correspondences:
+def lift(a, b, fa, fb, ia, ib, index: int) -> Correspondences:
     """Matched features with depth on both sides, each into its robot's map frame."""
     pa, va = backproject_pixels(fa.keypoints[ia], a.depth, a.intrinsics)
     pb, vb = backproject_pixels(fb.keypoints[ib], b.depth, b.intrinsics)
@@ -144,5 +144,5 @@ def verified_and_raw(
             fa.descriptors, fb.descriptors, (ALIGN_MATCH.ratio, ratio)
         )
         verified.append(pair_correspondences(a, b, i, fa, fb, matches=m_verify))
-        raw.append(_lift(a, b, fa, fb, *m_raw, i))
+        raw.append(lift(a, b, fa, fb, *m_raw, i))
     return Correspondences.concat(verified), Correspondences.concat(raw)

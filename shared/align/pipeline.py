@@ -11,6 +11,8 @@
    nearly the same overlap. Otherwise: no merge, with the reason.
 5. An MLP (the thesis's estimator) on the inliers, kept only where it lowers the held-out
    error of the rigid fit.
+6. Refused: a second look with affine-simulated SIFT on a few views of each robot
+   (`fleetmap.align.second_look`), its matches judged with the first's by the same gate.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import time
 import numpy as np
 
 from fleetmap.align.hypotheses import choose, pair_hypotheses, probe_points, rigid_hypotheses
+from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import holdout_residual, spread
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
@@ -46,6 +49,14 @@ def align_views(
     depth = scene_depth(pairs)
     C, R = verified_and_raw(pairs, pair_features(pairs))
     res = _align(C, R, pairs, p, depth)
+    if not res.merged and p.second_look and len(R) >= p.min_inliers:
+        R = Correspondences.concat([R, affine_matches(pairs, len(pairs))])
+        again = _align(C, R, pairs, p, depth)
+        if again.merged:
+            res = again
+            res.method += "+asift"
+        else:
+            res.reason += f"; with affine-simulated features too: {again.reason}"
     res.correspondences, res.scene_depth_m = len(R), depth
     res.seconds = time.perf_counter() - t0
     log.info(
