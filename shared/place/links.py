@@ -10,7 +10,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fleetmap.frame import Frame
-from fleetmap.place.cascade import sparse_covisibility
+from fleetmap.place.cascade import CovisTarget, covis_source, covis_target, covisibility_many
 from fleetmap.place.store import LinkRow, Store
 
 LINK_NEAR_M = 4.0  # keyframes whose seen points' centres are farther apart share nothing
@@ -25,31 +25,68 @@ def centre(f: Frame) -> np.ndarray:
     return f.points[f.point_valid].astype(np.float64).mean(0)
 
 
-def link_rows(xs, rx: int, ys, ry: int, T_y_x: np.ndarray) -> list[LinkRow]:
+class CovisCache:
+    """Each keyframe's side of the co-visibility test (`covis_target`, `covis_source`),
+    computed once per keyframe id however many pairs it is in."""
+
+    def __init__(self):
+        self._targets: dict[int, CovisTarget | None] = {}
+        self._sources: dict[int, np.ndarray] = {}
+
+    def target(self, kf_id: int, f: Frame) -> CovisTarget | None:
+        if kf_id not in self._targets:
+            self._targets[kf_id] = covis_target(f)
+        return self._targets[kf_id]
+
+    def source(self, kf_id: int, f: Frame) -> np.ndarray:
+        if kf_id not in self._sources:
+            self._sources[kf_id] = covis_source(f)
+        return self._sources[kf_id]
+
+
+def link_rows(xs, rx: int, ys, ry: int, T_y_x: np.ndarray, cache=None) -> list[LinkRow]:
     """For each keyframe x (id, frame) of robot rx, its most co-visible keyframe of robot ry
-    under T_y_x (rx's map into ry's): rows (kf_x, rx, kf_y, ry, points seen, points)."""
-    out = []
+    under T_y_x (rx's map into ry's): rows (kf_x, rx, kf_y, ry, points seen, points).
+    Each y is tested against all the xs near it at once (`covisibility_many`)."""
+    cache = CovisCache() if cache is None else cache
     cy = np.array([centre(fy) for _, fy in ys]).reshape(-1, 3)
-    for kx, fx in xs:
-        best = None
+    near = []
+    for _, fx in xs:
         c = T_y_x[:3, :3] @ centre(fx) + T_y_x[:3, 3]
-        for k in np.flatnonzero(np.linalg.norm(cy - c, axis=1) < LINK_NEAR_M):
-            ky, fy = ys[k]
-            seen, share = sparse_covisibility(fy, fx, T_y_x)
-            ok = seen >= LINK_MIN_POINTS and share >= LINK_MIN_SHARE
-            if ok and (best is None or seen > best[4]):
-                n_pts = int(fx.point_valid.sum()) if fx.point_valid is not None else 0
-                best = (kx, rx, ky, ry, seen, n_pts)
+        near.append(np.flatnonzero(np.linalg.norm(cy - c, axis=1) < LINK_NEAR_M))
+    by_y: dict[int, list[int]] = {}
+    for i, ks in enumerate(near):
+        for k in ks:
+            by_y.setdefault(int(k), []).append(i)
+    scores: dict[tuple[int, int], tuple[int, float]] = {}
+    for k, idx in by_y.items():
+        target = cache.target(*ys[k])
+        sources = [cache.source(*xs[i]) for i in idx]
+        for i, score in zip(idx, covisibility_many(target, sources, T_y_x), strict=True):
+            scores[i, k] = score
+    out = []
+    for i, (kx, fx) in enumerate(xs):
+        best = None
+        for k in near[i]:
+            seen, share = scores[i, int(k)]
+            if seen >= LINK_MIN_POINTS and share >= LINK_MIN_SHARE:
+                if best is None or seen > best[4]:
+                    n_pts = int(fx.point_valid.sum()) if fx.point_valid is not None else 0
+                    best = (kx, rx, ys[k][0], ry, seen, n_pts)
         if best is not None:
             out.append(best)
     return out
 
 
 def pair_link_rows(store: Store, load, ra: int, rb: int, T_a_b: np.ndarray) -> list[LinkRow]:
-    """Link rows both ways between two robots' whole keyframe sets."""
+    """Link rows both ways between two robots' whole keyframe sets; each keyframe's side of
+    the co-visibility test is computed once for both."""
     fa = [(i, load(i)) for i in store.robot_keyframe_ids(ra)]
     fb = [(i, load(i)) for i in store.robot_keyframe_ids(rb)]
-    return link_rows(fb, rb, fa, ra, T_a_b) + link_rows(fa, ra, fb, rb, np.linalg.inv(T_a_b))
+    cache = CovisCache()
+    return link_rows(fb, rb, fa, ra, T_a_b, cache) + link_rows(
+        fa, ra, fb, rb, np.linalg.inv(T_a_b), cache
+    )
 
 
 class LinkOverlaps:
