@@ -133,3 +133,43 @@ def test_a_keyframe_without_depth_or_pose_sees_nothing(sun3d, sun3d_keyframes):
     assert sparse_covisibility(blind, b, T) == old_sparse_covisibility(blind, b, T) == (0, 0.0)
     assert sparse_covisibility(a, flat, T) == old_sparse_covisibility(a, flat, T) == (0, 0.0)
     assert covisibility_many(covis_target(a), [covis_source(flat)], T) == [(0, 0.0)]
+
+
+class _Store:
+    """The two calls LinkOverlaps makes of a store: robot 2 linked into robot 1."""
+
+    def __init__(self, ids: dict[int, list[int]], T_1_2: np.ndarray):
+        self.ids, self.T = ids, T_1_2
+
+    def links(self, code):
+        return [(1, 2, self.T, 0.0)]
+
+    def robot_keyframe_ids(self, code):
+        return self.ids[code]
+
+
+@pytest.mark.parametrize("size", [512, 3])  # 3: most targets evicted and loaded again
+def test_live_link_overlaps_are_unchanged(hololens, hololens_frames, size, monkeypatch):
+    """Each new keyframe's link overlaps (`LinkOverlaps`, prepared targets kept between
+    keyframes) equal the old per-pair code's on fresh frames, both robots streaming."""
+    import fleetmap.place.links as links
+
+    monkeypatch.setattr(links, "LINK_CACHE", size)
+    T = np.loadtxt(hololens / "T_a_b.txt")
+    frames = {i: f for i, f in enumerate(hololens_frames["hl_a"])}
+    frames |= {1000 + i: f for i, f in enumerate(hololens_frames["hl_b"])}
+    ids = {1: sorted(i for i in frames if i < 1000), 2: sorted(i for i in frames if i >= 1000)}
+    loads = []
+    live = links.LinkOverlaps(_Store(ids, T), lambda i: loads.append(i) or frames[i])
+    xs = {c: [(i, frames[i]) for i in ids[c]] for c in ids}
+    for passes in range(2):
+        loads.clear()
+        n = 0
+        for code, other, T_o in ((2, 1, T), (1, 2, np.linalg.inv(T))):
+            for kx, fx in xs[code]:
+                old = old_link_rows([(kx, fx)], code, xs[other], other, T_o)
+                assert live.for_keyframe(kx, fx, code) == old
+                n += len(old)
+        assert n >= 20
+        if size == 512 and passes == 1:
+            assert loads == []  # every centre and target was kept: nothing read again
