@@ -21,6 +21,11 @@ extraction not); `placed_after_evidence_s`, from then to its first placement; `f
 the error of that first placement ("ref": it was the reference then) and `settled_cm`, the
 last map's; `fits`, each placement it had, in time order, with its error.
 
+`--profile DIR`: py-spy (`pip install py-spy`) samples the place database and the aligner
+from the stream's start to the first map with every robot that should merge placed, and
+writes each one's collapsed stacks (DIR/place-db.txt, DIR/aligner.txt, one thread per
+stack root) and its hottest functions (DIR/*.top.txt).
+
 Which code runs is the interpreter's: `/work/main/.venv/bin/python bench/live_stream.py`
 measures the install of /work/main with this script.
 """
@@ -30,11 +35,13 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import httpx
@@ -142,9 +149,59 @@ def robot_rows(watch: Watch, final: dict, frames: dict, work: Path) -> dict:
     return out
 
 
-def live_run(dirs: list[str], should_merge: set[str], work: Path, speed: float = 0.0) -> dict:
+def start_profiles(out: Path | None, services: list[Service]) -> list[subprocess.Popen]:
+    """py-spy recording each service (raw collapsed stacks with thread ids), or none."""
+    if out is None:
+        return []
+    out.mkdir(parents=True, exist_ok=True)
+    spy = str(Path(sys.executable).parent / "py-spy")
+    return [
+        subprocess.Popen(
+            [spy, "record", "-r", "50", "-t", "-f", "raw", "-p", str(s.proc.pid)]
+            + ["-o", str(out / f"{s.kind}.txt")],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for s in services
+    ]
+
+
+def stop_profiles(spies: list[subprocess.Popen], out: Path | None) -> None:
+    """Stop the recordings (py-spy writes on SIGINT) and summarise each: samples by the
+    innermost fleetmap function and by any function on the stack (inclusive)."""
+    for p in spies:
+        p.send_signal(signal.SIGINT)
+    for p in spies:
+        p.wait(60)
+    for f in sorted(out.glob("*.txt")) if spies else []:
+        if f.name.endswith(".top.txt"):
+            continue
+        own, incl, total = Counter(), Counter(), 0
+        for line in f.read_text().splitlines():
+            stack, _, n = line.rpartition(" ")
+            frames = stack.split(";")
+            total += int(n)
+            ours = [x for x in frames if "fleetmap" in x or "/shared/" in x or "/services/" in x]
+            own[ours[-1] if ours else frames[-1]] += int(n)
+            for x in set(frames):
+                incl[x] += int(n)
+        rows = [f"{total} samples (50/s, every thread)", "-- innermost project function:"]
+        rows += [f"{n:7d} {100 * n / total:5.1f}% {x}" for x, n in own.most_common(25)]
+        rows += ["-- on the stack (inclusive):"]
+        rows += [f"{n:7d} {100 * n / total:5.1f}% {x}" for x, n in incl.most_common(40)]
+        f.with_suffix(".top.txt").write_text("\n".join(rows) + "\n")
+
+
+def live_run(
+    dirs: list[str],
+    should_merge: set[str],
+    work: Path,
+    speed: float = 0.0,
+    profile: Path | None = None,
+) -> dict:
     aligner = Service("aligner").start()
     db = Service("place-db", work / "db", args=["--aligner", aligner.url]).start()
+    spies = start_profiles(profile, [db, aligner])
     try:
         t0 = time.monotonic()
         watch = Watch(db.url, should_merge, t0)
@@ -159,6 +216,8 @@ def live_run(dirs: list[str], should_merge: set[str], work: Path, speed: float =
             m = httpx.get(db.url + "/map", timeout=60).json()
             if placed_at is None and should_merge <= set(m["transforms"]):
                 placed_at = time.monotonic()
+                stop_profiles(spies, profile)
+                spies = []
             key = [p["attempts"] for p in m["pairs"]]
             w = m["worker"]
             busy = w is None or w["aligning"] or w["due"] or not w.get("quiet")
@@ -177,6 +236,7 @@ def live_run(dirs: list[str], should_merge: set[str], work: Path, speed: float =
             "settled_after_s": last_change - t_last,
         }
     finally:
+        stop_profiles(spies, profile)
         db.stop()
         aligner.stop()
 
@@ -200,6 +260,7 @@ def main() -> None:
     ap.add_argument("--no-batch", action="store_true")
     ap.add_argument("--keep", type=Path, help="copy the robot folders and truth here")
     ap.add_argument("--speed", type=float, default=0.0, help="times recording speed (0: max)")
+    ap.add_argument("--profile", type=Path, help="py-spy the services until first placement")
     args = ap.parse_args()
     all_cases = cases(args.data)
     if args.case not in all_cases:
@@ -211,7 +272,7 @@ def main() -> None:
         )
         ref = dirs[0].split("=")[0]
         should = {r for r, T in frames.items() if T is not None}
-        live = live_run(dirs, should, work, args.speed)
+        live = live_run(dirs, should, work, args.speed, args.profile)
         m = live["map"]
         row = {
             "case": args.case + (" + isolated" if args.isolated else ""),

@@ -119,6 +119,69 @@ def run_cascade(
     )
 
 
+class CovisTarget:
+    """A target keyframe's side of `sparse_covisibility`, which depends on it alone and is
+    computed once per keyframe: its map-to-camera transform, the depths of its feature
+    points in front of it, and a KD-tree of their pixels."""
+
+    def __init__(self, target: Frame):
+        from scipy.spatial import cKDTree
+
+        self.K = target.intrinsics
+        self.cam = np.linalg.inv(target.T_map_cam)
+        pa = target.points[target.point_valid].astype(np.float64)
+        pa = pa @ self.cam[:3, :3].T + self.cam[:3, 3]
+        pa = pa[pa[:, 2] > 0.1]
+        self.depth = pa[:, 2]
+        self.tree = cKDTree(self.K.project(pa)) if len(pa) else None
+
+
+def covis_target(target: Frame) -> CovisTarget | None:
+    """The target's prepared side; None where it can see nothing (no map points, pose or
+    intrinsics, or no point in front of its camera)."""
+    if target.points is None or target.T_map_cam is None or target.intrinsics is None:
+        return None
+    t = CovisTarget(target)
+    return t if t.tree is not None else None
+
+
+def covis_source(source: Frame) -> np.ndarray:
+    """The source's side: its valid map points, float64 (M, 3); none without depth."""
+    if source.points is None:
+        return np.zeros((0, 3))
+    return source.points[source.point_valid].astype(np.float64)
+
+
+def covisibility_many(
+    target: CovisTarget | None,
+    sources: list[np.ndarray],
+    T_target_source: np.ndarray,
+    radius_px: float = 24.0,
+) -> list[tuple[int, float]]:
+    """`sparse_covisibility` of one prepared target and many sources' points
+    (`covis_source`), in one pass: the sources' points are mapped, projected and looked up
+    in the target's KD-tree together. One (points seen, share) per source."""
+    sizes = [len(s) for s in sources]
+    if target is None or not sum(sizes):
+        return [(0, 0.0)] * len(sources)
+    M = target.cam @ T_target_source
+    pb = np.concatenate(sources) @ M[:3, :3].T + M[:3, 3]
+    owner = np.repeat(np.arange(len(sources)), sizes)
+    z = pb[:, 2]
+    front = z > 0.1
+    ub = target.K.project(pb[front])
+    K = target.K
+    inside = (ub[:, 0] >= 0) & (ub[:, 0] < K.width) & (ub[:, 1] >= 0) & (ub[:, 1] < K.height)
+    counts = np.zeros(len(sources), np.int64)
+    if inside.any():
+        d, k = target.tree.query(ub[inside], distance_upper_bound=radius_px)
+        near = np.isfinite(d)
+        za, zb = target.depth[k[near]], z[front][inside][near]
+        seen = np.abs(zb - za) < 0.1 + 0.05 * za
+        counts = np.bincount(owner[front][inside][near][seen], minlength=len(sources))
+    return [(int(n), int(n) / m if m else 0.0) for n, m in zip(counts, sizes, strict=True)]
+
+
 def sparse_covisibility(
     target: Frame, source: Frame, T_target_source: np.ndarray, radius_px: float = 24.0
 ) -> tuple[int, float]:
@@ -126,34 +189,11 @@ def sparse_covisibility(
     two robots' maps: source's feature points, mapped and projected into target's image,
     that land near one of target's own features at a consistent depth (so neither outside
     the view nor hidden behind a nearer surface). Needs both frames' map points, poses and
-    target's intrinsics. Returns (points seen, share of source's points)."""
-    if (
-        target.points is None
-        or source.points is None
-        or target.T_map_cam is None
-        or target.intrinsics is None
-    ):
+    target's intrinsics. Returns (points seen, share of source's points). Many pairs:
+    `covisibility_many`, with each keyframe's side prepared once."""
+    if source.points is None:
         return 0, 0.0
-    from scipy.spatial import cKDTree
-
-    K = target.intrinsics
-    cam = np.linalg.inv(target.T_map_cam)
-    pa = target.points[target.point_valid].astype(np.float64) @ cam[:3, :3].T + cam[:3, 3]
-    M = cam @ T_target_source
-    pb = source.points[source.point_valid].astype(np.float64) @ M[:3, :3].T + M[:3, 3]
-    pa = pa[pa[:, 2] > 0.1]
-    if not len(pa) or not len(pb):
-        return 0, 0.0
-    z = pb[:, 2]
-    front = z > 0.1
-    zf = z[front]
-    ub = K.project(pb[front])
-    inside = (ub[:, 0] >= 0) & (ub[:, 0] < K.width) & (ub[:, 1] >= 0) & (ub[:, 1] < K.height)
-    if not inside.any():
-        return 0, 0.0
-    ua = K.project(pa)
-    d, k = cKDTree(ua).query(ub[inside], distance_upper_bound=radius_px)
-    near = np.isfinite(d)
-    za, zb = pa[k[near], 2], zf[inside][near]
-    n = int(np.count_nonzero(np.abs(zb - za) < 0.1 + 0.05 * za))
-    return n, n / len(pb)
+    (out,) = covisibility_many(
+        covis_target(target), [covis_source(source)], T_target_source, radius_px
+    )
+    return out
