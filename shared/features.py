@@ -183,10 +183,10 @@ def _sift_topup(gray: np.ndarray, existing: list[cv2.KeyPoint], n: int) -> list[
 
 def affine_features(image: np.ndarray, max_tilt: int = 4, per_view: int = 200) -> LocalFeatures:
     """Affine-simulated SIFT (ASIFT, Morel and Yu 2009, OpenCV's `AffineFeature`): SIFT on
-    the image seen under simulated camera tilts up to `max_tilt` (1, 1.4, 2, 2.8: 17 views),
-    `per_view` strongest each. It matches surfaces seen from far apart directions where
-    SIFT's own invariance ends (a room walked through the other way). Keypoints in the
-    original image; descriptors uint8."""
+    the image seen under simulated camera tilts below `max_tilt` (1, 1.4, 2, 2.8: about 18
+    views), `per_view` strongest each. It matches surfaces seen from far apart directions
+    where SIFT's own invariance ends (a room walked through the other way). Keypoints in
+    the original image; descriptors uint8."""
     gray = _gray(image)
     backend = cv2.SIFT_create(nfeatures=per_view, nOctaveLayers=SIFT_LAYERS, sigma=SIFT_SIGMA)
     kps, desc = cv2.AffineFeature_create(backend, maxTilt=max_tilt).detectAndCompute(gray, None)
