@@ -95,10 +95,9 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     plain point-to-plane fit is the better one (0.08 against 0.2-2 cm), and where colour is
     not registered to depth, colour pulls the fit off (HoloLens lounge: 1.6 cm coloured, 1.0
     cm geometric). The matches decide where they can tell (`ranked`: agreeing within 4 cm,
-    beyond the count's noise), the depth where they cannot: on 16 recall pairs the depth
-    alone chose the worse refinement 6 times (up to 7.0 against 2.7 cm), the matches at
-    half the tolerance once (1.5 against 0.9 cm, a tie by the noise rule). See
-    docs/ALIGNER.md."""
+    beyond the counts' noise), the depth where they cannot: on 17 recall pairs the depth
+    alone chose the worse refinement 6 times (up to 7.0 against 2.7 cm), this rule once
+    (a tie, 3.3 against 0.4 cm). See docs/ALIGNER.md."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
@@ -137,12 +136,13 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
 
 def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p: AlignParams):
     """The refinements [(T_a_b, source)], best first: by how many raw matches agree within
-    half the RANSAC tolerance; those within the count's own noise (its square root) of the
-    most are tied, and their surfaces decide (`surface_rmse`, depth only)."""
+    half the RANSAC tolerance; those whose count is within the noise of a difference of two
+    counts (the square root of their sum) of the most are tied, and their surfaces decide
+    (`surface_rmse`, depth only)."""
     half = [int(np.count_nonzero(np.linalg.norm(apply(T, R.X) - R.Y, axis=1) < p.ransac_tol_m / 2))
             for T, _ in cands]  # fmt: skip
     top = max(half)
-    tied = [k for k, n in enumerate(half) if n >= top - np.sqrt(top)]
+    tied = [k for k, n in enumerate(half) if top - n <= np.sqrt(top + n)]
     rest = sorted((k for k in range(len(cands)) if k not in tied), key=lambda k: -half[k])
     tied.sort(key=lambda k: surface_rmse(cb1, ca1, cands[k][0], p.voxel_m))
     return [cands[k] for k in tied + rest]
