@@ -12,7 +12,7 @@ from fleetmap.client import PlaceDBClient
 from fleetmap.place import PlaceDB
 from tests import pg
 from tests.helpers import OCTET, ingest
-from tests.servers import LIVE_FAST, Service
+from tests.servers import LIVE_FAST, Service, http
 
 
 def _replica(url: str, tmp_path, k: int) -> Service:
@@ -199,14 +199,14 @@ def test_replicas_merge_live_once_and_both_serve_the_map(pg_url, tmp_path, sim_f
         )
 
         def settled() -> bool:
-            m = httpx.get(two.url + "/map", timeout=30).json()
+            m = http.get(two.url + "/map", timeout=30).json()
             w = m["worker"]
             merged = sum(p["status"] == "merged" for p in m["pairs"])
             return merged == 3 and w is not None and w["quiet"] and not (w["aligning"] or w["due"])
 
         _wait(settled, timeout=300)
-        m = httpx.get(two.url + "/map").json()
-        assert httpx.get(one.url + "/map").json()["transforms"] == m["transforms"]
+        m = http.get(two.url + "/map").json()
+        assert http.get(one.url + "/map").json()["transforms"] == m["transforms"]
         assert m["reference"] == "robot0" and m["unmerged"] == []
         for robot, T in m["transforms"].items():
             dt, dr = transform_error(np.array(T), np.array(truth[robot]))
