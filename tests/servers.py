@@ -19,6 +19,13 @@ ROOT = Path(__file__).resolve().parents[1]
 #: robots quiet after 2 s without a keyframe (not 5 s). What is asserted is unchanged.
 LIVE_FAST = {"FLEETMAP_PLACE_DB_LIVE__POLL_S": "0.25", "FLEETMAP_PLACE_DB_LIVE__SETTLE_S": "2"}
 
+#: The tests' own requests to the services they start. `httpx.get` builds a new client, and
+#: with it a TLS context (some 30 ms of CPU loading the CA bundle, even for http://), on
+#: every call: the health and map polls spent tens of seconds of CPU on it, taken from the
+#: services under test. This client is built once; it keeps no idle connection, so every
+#: request opens its own, as `httpx.get` did; the same default timeout (5 s).
+http = httpx.Client(limits=httpx.Limits(max_connections=None, max_keepalive_connections=0))
+
 
 def free_port() -> int:
     with socket.socket() as s:
@@ -70,7 +77,7 @@ class Service:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"{self.kind} exited: {self.read_log()}")
             with contextlib.suppress(httpx.TransportError):
-                if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
+                if http.get(self.url + "/healthz", timeout=1.0).status_code == 200:
                     return self
             time.sleep(0.1)
         raise RuntimeError(f"{self.kind} did not start within {timeout} s")

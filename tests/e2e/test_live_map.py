@@ -11,14 +11,13 @@ import tempfile
 import time
 
 import cv2
-import httpx
 import numpy as np
 import pytest
 
 from fleetmap.geometry import transform_error
 from fleetmap.services.cli import main
 from tests.conftest import write_robot
-from tests.servers import LIVE_FAST, Service
+from tests.servers import LIVE_FAST, Service, http
 
 pytestmark = pytest.mark.slow
 
@@ -38,7 +37,7 @@ def wait_map(
     """The map once `placed` robots are placed and `merged_pairs` pairs merged."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
-        m = httpx.get(url + "/map", headers=headers, timeout=30).json()
+        m = http.get(url + "/map", headers=headers, timeout=30).json()
         merged = sum(p["status"] == "merged" for p in m["pairs"])
         if len(m["transforms"]) >= placed and merged >= merged_pairs:
             return m
@@ -50,7 +49,7 @@ def settled(url: str, quiet_s: float = 2.5, timeout: float = 120.0) -> dict:
     """The map once no pair has been aligned for `quiet_s` seconds."""
     end, last, since = time.monotonic() + timeout, None, time.monotonic()
     while time.monotonic() < end:
-        m = httpx.get(url + "/map", headers=AUTH, timeout=30).json()
+        m = http.get(url + "/map", headers=AUTH, timeout=30).json()
         key = [p["attempts"] for p in m["pairs"]]
         w = m["worker"]
         busy = w is None or w["aligning"] or w["due"] or not w.get("quiet")
@@ -103,16 +102,16 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, sim_fleet, tmp_p
     ]
     m = settled(db.url)  # refinements as overlaps doubled, then nothing new:
     time.sleep(2)  # no pair aligned again, the version unchanged
-    again = httpx.get(db.url + "/map", headers=AUTH).json()
+    again = http.get(db.url + "/map", headers=AUTH).json()
     assert again["version"] == m["version"]
     assert [p["attempts"] for p in again["pairs"]] == [p["attempts"] for p in m["pairs"]]
     check_truth(again, truth)
-    assert httpx.get(db.url + "/map").status_code == 401  # token-protected
-    kfs = httpx.get(db.url + "/robots/robot1/keyframes", headers=AUTH).json()["keyframes"]
+    assert http.get(db.url + "/map").status_code == 401  # token-protected
+    kfs = http.get(db.url + "/robots/robot1/keyframes", headers=AUTH).json()["keyframes"]
     assert len(kfs) == 12
-    view = httpx.get(db.url + f"/keyframes/{kfs[0]['id']}/view", headers=AUTH).json()
+    view = http.get(db.url + f"/keyframes/{kfs[0]['id']}/view", headers=AUTH).json()
     assert view["robot_id"] == "robot1" and view["rgb_type"] == "image/jpeg"
-    depth = httpx.get(db.url + f"/keyframes/{kfs[0]['id']}/view/depth", headers=AUTH).content
+    depth = http.get(db.url + f"/keyframes/{kfs[0]['id']}/view/depth", headers=AUTH).content
     assert cv2.imdecode(np.frombuffer(depth, np.uint8), cv2.IMREAD_UNCHANGED).dtype == np.uint16
 
     out = tmp_path / "map"
@@ -198,18 +197,18 @@ def test_3d_view_draws_every_placed_robot_offline(live):
     from fleetmap.mapcloud import ROBOT_COLOURS
 
     db, _ = live
-    r = httpx.get(db.url + "/map/robots/robot1/cloud.bin", headers=AUTH)
+    r = http.get(db.url + "/map/robots/robot1/cloud.bin", headers=AUTH)
     n = int(r.headers["x-points"])
     assert r.status_code == 200 and len(r.content) == 15 * n and 1000 < n and len(r.content) <= 2e6
     xyz = np.frombuffer(r.content, "<f4", 3 * n).reshape(n, 3)
     assert np.isfinite(xyz).all()
-    assert httpx.get(db.url + "/map/robots/robot1/cloud.bin").status_code == 401
-    assert httpx.get(db.url + "/map/robots/nobody/cloud.bin", headers=AUTH).status_code == 404
-    lines = httpx.get(db.url + "/map/lines", headers=AUTH).json()
+    assert http.get(db.url + "/map/robots/robot1/cloud.bin").status_code == 401
+    assert http.get(db.url + "/map/robots/nobody/cloud.bin", headers=AUTH).status_code == 404
+    lines = http.get(db.url + "/map/lines", headers=AUTH).json()
     assert lines["overlaps"] and {ln[0] for ln in lines["overlaps"]} <= {"robot0", "robot1"}
-    page = httpx.get(db.url + "/").text
+    page = http.get(db.url + "/").text
     assert "/static/map3d/map3d.bundle.js" in page and "://" not in page  # no CDN
-    bundle = httpx.get(db.url + "/static/map3d/map3d.bundle.js")  # code, no data: no token
+    bundle = http.get(db.url + "/static/map3d/map3d.bundle.js")  # code, no data: no token
     assert bundle.status_code == 200 and b"Three.js Authors" in bundle.content
     img = chromium_screenshot(f"{db.url}/#token={TOKEN}&view=3d").astype(int)
     # each placed robot's points in its own colour (drawn unlit, colours as given)
@@ -221,7 +220,7 @@ def test_3d_view_draws_every_placed_robot_offline(live):
 
 def test_operator_page_in_a_real_browser(live):
     db, _ = live
-    m = httpx.get(db.url + "/map", headers=AUTH).json()
+    m = http.get(db.url + "/map", headers=AUTH).json()
     dom = chromium_dom(f"{db.url}/#token={TOKEN}")
     assert f'data-version="{m["version"]}"' in dom  # the script ran and read the map
     assert f"map version {m['version']}: 3 of 4 robots placed, reference robot0" in dom
@@ -262,7 +261,7 @@ def test_restart_mid_stream_loses_nothing_and_resumes_the_map(
         before = settled(db.url)  # aligned on every overlap found
         db.kill()  # no chance to flush anything
         db = Service("place-db", data, env=LIVE_FAST, args=["--aligner", aligner_url]).start()
-        m = httpx.get(db.url + "/map").json()
+        m = http.get(db.url + "/map").json()
         assert m["version"] == before["version"] and m["transforms"] == before["transforms"]
         # the rest of the stream (the robots' earlier keyframes again: idempotent)
         robots = [str(sim / r) for r in truth]
@@ -275,7 +274,7 @@ def test_restart_mid_stream_loses_nothing_and_resumes_the_map(
         )
         assert pair01["attempts"] == first01["attempts"]  # no new evidence: not aligned again
         robots_after = {
-            r["robot_id"]: r["keyframes"] for r in httpx.get(db.url + "/robots").json()["robots"]
+            r["robot_id"]: r["keyframes"] for r in http.get(db.url + "/robots").json()["robots"]
         }
         assert robots_after == {"robot0": 12, "robot1": 12, "robot2": 12}
     finally:

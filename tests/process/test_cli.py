@@ -8,11 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import httpx
 import pytest
 
 from fleetmap.services.cli import main
-from tests.servers import ROOT, Service
+from tests.servers import ROOT, Service, http
 
 EXAMPLE = ROOT / "examples" / "fr1_pair"
 
@@ -155,8 +154,8 @@ def test_tokens_from_a_secrets_folder(tmp_path):
     env = {"FLEETMAP_SECRETS_DIR": str(secrets)}
     svc = Service("place-db", tmp_path / "db", env=env).start()
     try:
-        assert httpx.get(svc.url + "/robots").status_code == 401
-        ok = httpx.get(svc.url + "/robots", headers={"authorization": "Bearer from-a-file"})
+        assert http.get(svc.url + "/robots").status_code == 401
+        ok = http.get(svc.url + "/robots", headers={"authorization": "Bearer from-a-file"})
         assert ok.status_code == 200
         assert "from-a-file" not in svc.read_log()
     finally:

@@ -2,10 +2,8 @@
 
 import json
 
-import httpx
-
 from fleetmap.services.cli import main
-from tests.servers import Service
+from tests.servers import Service, http
 
 
 def test_cli_ingest_overlaps_and_sigkill_restart(sun3d, tmp_path, capsys):
@@ -27,14 +25,14 @@ def test_cli_ingest_overlaps_and_sigkill_restart(sun3d, tmp_path, capsys):
         assert main(["overlaps", "B", "A", "--place-db", svc.url, "--json"]) == 0
         first = json.loads(capsys.readouterr().out)["overlaps"]
         assert first and all(o["robot_a"] == "B" and o["inliers"] >= 10 for o in first)
-        robots = httpx.get(svc.url + "/robots").json()["robots"]
+        robots = http.get(svc.url + "/robots").json()["robots"]
     finally:
         svc.kill()
     again = Service("place-db", tmp_path / "db")
     again.port, again.url = svc.port, svc.url
     again.start()
     try:
-        assert httpx.get(svc.url + "/robots").json()["robots"] == robots
+        assert http.get(svc.url + "/robots").json()["robots"] == robots
         assert main(["overlaps", "B", "A", "--place-db", svc.url, "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["overlaps"] == first
     finally:

@@ -106,15 +106,12 @@ def test_request_ids_are_sanitised(client):
 def test_a_token_in_the_query_string_never_reaches_the_log(tmp_path):
     """uvicorn's access line logged `?token=...` verbatim; now only our request line, path
     without the query string."""
-    import httpx
 
-    from tests.servers import Service
+    from tests.servers import Service, http
 
     svc = Service("place-db", tmp_path / "db").start()
     try:
-        assert (
-            httpx.get(svc.url + "/healthz", params={"token": "SUPERSECRET123"}).status_code == 200
-        )
+        assert http.get(svc.url + "/healthz", params={"token": "SUPERSECRET123"}).status_code == 200
     finally:
         svc.stop()
     log = svc.read_log()
@@ -166,13 +163,12 @@ def test_a_damaged_database_file_is_one_line_not_a_traceback(tmp_path):
 @pytest.mark.parametrize("damage", ["delete", "truncate"])
 def test_a_lost_write_ahead_log_after_a_crash_is_reported(tmp_path, sun3d_frames, damage):
     """A truncated or deleted WAL silently lost acknowledged keyframes, with no log line."""
-    import httpx
 
-    from tests.servers import Service
+    from tests.servers import Service, http
 
     svc = Service("place-db", tmp_path / "db").start()
     for d in sun3d_frames["robot_a"][:6]:
-        r = httpx.post(svc.url + "/robots/robot_a/keyframes", content=d, headers=OCTET)
+        r = http.post(svc.url + "/robots/robot_a/keyframes", content=d, headers=OCTET)
         assert r.status_code == 201
     svc.kill()  # SIGKILL: the acknowledged keyframes live in the write-ahead log
     wal = next((tmp_path / "db").glob("*-wal"))
@@ -183,7 +179,7 @@ def test_a_lost_write_ahead_log_after_a_crash_is_reported(tmp_path, sun3d_frames
             f.truncate(wal.stat().st_size // 2)
     again = Service("place-db", tmp_path / "db").start()
     try:
-        h = httpx.get(again.url + "/healthz").json()
+        h = http.get(again.url + "/healthz").json()
         assert h["status"] == "degraded" and "were acknowledged" in h["startup_warning"]
     finally:
         again.stop()
@@ -237,9 +233,7 @@ def test_slowloris_connections_are_closed(tmp_path):
     import socket
     import time
 
-    import httpx
-
-    from tests.servers import Service
+    from tests.servers import Service, http
 
     svc = Service("place-db", tmp_path / "db").start()
     socks = []
@@ -248,7 +242,7 @@ def test_slowloris_connections_are_closed(tmp_path):
             s = socket.create_connection(("127.0.0.1", svc.port))
             s.sendall(b"POST /query HTTP/1.1\r\nHost: x\r\n")  # and never the rest
             socks.append(s)
-        assert httpx.get(svc.url + "/healthz").status_code == 200
+        assert http.get(svc.url + "/healthz").status_code == 200
         end, closed = time.monotonic() + 30, set()
         while time.monotonic() < end and len(closed) < len(socks):
             for k, s in enumerate(socks):
@@ -283,13 +277,11 @@ def test_json_logs_carry_request_fields_and_a_start_line(tmp_path):
     a served place database printed no 'listening on' line."""
     import json as jsonlib
 
-    import httpx
-
-    from tests.servers import Service
+    from tests.servers import Service, http
 
     svc = Service("place-db", tmp_path / "db", env={"FLEETMAP_LOG_FORMAT": "json"}).start()
     try:
-        httpx.get(svc.url + "/healthz", headers={"x-request-id": "probe-1"})
+        http.get(svc.url + "/healthz", headers={"x-request-id": "probe-1"})
     finally:
         svc.stop()
     lines = [jsonlib.loads(x) for x in svc.read_log().splitlines() if x.startswith("{")]
