@@ -47,11 +47,12 @@ def test_unverified_revisit_is_merged_and_another_building_is_not(hololens, sun3
     assert refused and all(not f["merged"] and f["reason"] for f in refused)
 
 
-def test_room_walked_the_other_way_is_merged_on_a_second_look(hololens, tmp_path):
+def test_room_walked_the_other_way_is_merged_on_a_second_look(hololens, tmp_path, monkeypatch):
     """hl_a frames 15-75 and hl_b 30-90 share half their surfaces, seen from the other
     direction: 1 of 730 raw MSER+SIFT matches agreed with the truth and the gate refused
     ("0 inlier correspondences"). Affine-simulated SIFT on a few views of each (the second
-    look) finds matches that agree; merged within 5 cm / 2 deg of the truth."""
+    look, opt-in) finds matches that agree; merged within 5 cm / 2 deg of the truth."""
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "true")
     T_hl = np.loadtxt(hololens / "T_a_b.txt")
     M = {r: random_frame(seed) for seed, r in enumerate("AB", start=31)}
     cut_recording(hololens / "hl_a", slice(15, 75), tmp_path / "A", M["A"])
