@@ -50,9 +50,9 @@ class AlignParams:
     try_mlp: bool = True
     min_spread_rel: float = 0.075  # or this share of the views' median depth, if less
     decisive_consistency: float = 0.95  # firm free-space consistency: geometry that decides
-    # refused pairs looked at again with ASIFT (second_look.py): opt-in, as it merged
-    # SUN3D windows of two recordings 11-15 cm off (docs/ALIGNER.md)
-    second_look: bool = False
+    # refused pairs looked at again with ASIFT (second_look.py); its merges must be pinned
+    # by the matches (pipeline._unpinned: without, SUN3D windows merged 11-15 cm off)
+    second_look: bool = True
 
     def spread_needed(self, depth_m: float) -> float:
         """The inliers' spread (metres) the gate needs for views whose median depth is
