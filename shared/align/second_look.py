@@ -48,10 +48,15 @@ def affine_matches(pairs, first_index: int, s: SecondLook = SecondLook()) -> Cor
     with ThreadPoolExecutor(2) as ex:  # OpenCV releases the GIL
         feats = list(ex.map(lambda v: affine_features(v.rgb, s.max_tilt, s.per_view), views))
     fa, fb = feats[: len(va)], feats[len(va) :]
-    out, k = [], first_index
-    for a, f_a in zip(va, fa, strict=True):
-        for b, f_b in zip(vb, fb, strict=True):
-            ia, ib = match_descriptors(f_a.descriptors, f_b.descriptors, s.ratio)
-            out.append(lift(a, b, f_a, f_b, ia, ib, k))
-            k += 1
+    grid = [(a, b) for a in range(len(va)) for b in range(len(vb))]
+
+    def match(ab: tuple[int, int]):
+        return match_descriptors(fa[ab[0]].descriptors, fb[ab[1]].descriptors, s.ratio)
+
+    with ThreadPoolExecutor(2) as ex:  # numpy's product, sort and partition release the GIL
+        found = list(ex.map(match, grid))
+    out = [
+        lift(va[a], vb[b], fa[a], fb[b], ia, ib, first_index + k)
+        for k, ((a, b), (ia, ib)) in enumerate(zip(grid, found, strict=True))
+    ]
     return Correspondences.concat(out)
