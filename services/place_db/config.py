@@ -34,6 +34,7 @@ class Settings(BaseSettings):
     # postgresql://USER[:PASS]@HOST:PORT/DB: replicas over one database; unset: SQLite in
     # data_dir (the embedded default)
     database: SecretStr | None = None
+    pg_timeout_s: float = 5.0  # PostgreSQL: a pooled connection within this, else 503
     db_file: str = DB_FILE
     vocabulary: Path | None = None  # None: the shipped default
     # access control: none configured = open (logged at start-up)

@@ -15,8 +15,8 @@ from tests.helpers import OCTET, ingest
 from tests.servers import LIVE_FAST, Service, http
 
 
-def _replica(url: str, tmp_path, k: int) -> Service:
-    env = {"FLEETMAP_PLACE_DB_DATABASE": url}
+def _replica(url: str, tmp_path, k: int, **env) -> Service:
+    env = {"FLEETMAP_PLACE_DB_DATABASE": url, **env}
     return Service("place-db", tmp_path / f"r{k}", env=env).start()
 
 
@@ -118,7 +118,8 @@ def test_postgres_restart_is_503_then_served_again(tmp_path, sun3d_frames):
     cluster = pg.Cluster().start()
     try:
         url = cluster.database()
-        svc = _replica(url, tmp_path, 1)
+        # a pooled connection waited for 1 s, not 5, before the 503: PostgreSQL is down here
+        svc = _replica(url, tmp_path, 1, FLEETMAP_PLACE_DB_PG_TIMEOUT_S="1")
         try:
             with httpx.Client(base_url=svc.url, timeout=60) as c:
                 d0, d1 = sun3d_frames["robot_a"][:2]
