@@ -195,7 +195,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         # our middleware logs each request (path without query string, sanitised id);
         # uvicorn's access line would log a token sent as ?token=... verbatim
         access_log=False,
-        http=header_timeout_protocol(),
+        http=header_timeout_protocol(app.state.settings.header_timeout_s),
     )
     return 0
 

@@ -22,6 +22,7 @@ class Settings(BaseSettings):
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = 128 * 1024 * 1024  # enforced while streaming, chunked or not
+    header_timeout_s: float = 10.0  # a request's headers within this, else closed (slowloris)
     # decoded colour + depth pixels of all requests being aligned at once (about 8 bytes
     # each while aligned): bounds memory whatever the concurrency; more waits, then 503
     max_pixels_in_flight: int = 32 * 1024 * 1024

@@ -34,6 +34,7 @@ class Settings(BaseSettings):
     # postgresql://USER[:PASS]@HOST:PORT/DB: replicas over one database; unset: SQLite in
     # data_dir (the embedded default)
     database: SecretStr | None = None
+    pg_timeout_s: float = 5.0  # PostgreSQL: a pooled connection within this, else 503
     db_file: str = DB_FILE
     vocabulary: Path | None = None  # None: the shipped default
     # access control: none configured = open (logged at start-up)
@@ -41,6 +42,7 @@ class Settings(BaseSettings):
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = MAX_FRAME_BYTES
     max_view_bytes: int = 16 * 1024 * 1024  # a keyframe's colour and depth images together
+    header_timeout_s: float = 10.0  # a request's headers within this, else closed (slowloris)
     # the cascade's parameters (thesis Algorithm 3), nested:
     # FLEETMAP_PLACE_DB_CASCADE__GIST_THRESHOLD=0.7, FLEETMAP_PLACE_DB_CASCADE__MATCH__RATIO=0.8
     cascade: CascadeParams = CascadeParams()

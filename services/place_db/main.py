@@ -12,6 +12,7 @@ from fleetmap.place import PlaceDB, RetrainPolicy
 from fleetmap.place.live import LiveMap
 from fleetmap.place.live_view import MapRenderer
 from fleetmap.place.scene3d import SceneCache
+from fleetmap.place.store import open_store
 from fleetmap.services.auth import auth_summary
 from fleetmap.services.docs import install_docs
 from fleetmap.services.http_errors import install_error_handlers
@@ -65,7 +66,7 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
         single_threaded_kernels()
         vocab = load_vocabulary(settings.vocabulary)
         app.state.db = PlaceDB(
-            settings.store,
+            open_store(settings.store, vocab.vocab_id, settings.pg_timeout_s),
             vocab,
             settings.cascade,
             RetrainPolicy(enabled=settings.auto_retrain),

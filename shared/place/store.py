@@ -149,13 +149,14 @@ class SharedStore(Store, Protocol):
     def claim(self, compute: Callable[[int], tuple | None]) -> int | None: ...
 
 
-def open_store(url_or_path: str | Path, vocab_id: str) -> Store:
+def open_store(url_or_path: str | Path, vocab_id: str, pg_timeout_s: float = 5.0) -> Store:
     """The backend where the data lives: a postgresql:// URL opens PostgreSQL (replicas over
-    one database); anything else SQLite, `DB_FILE` in a folder or else the file named."""
+    one database; a pooled connection within `pg_timeout_s`, else `Unavailable`); anything
+    else SQLite, `DB_FILE` in a folder or else the file named."""
     if isinstance(url_or_path, str) and url_or_path.startswith(POSTGRES_SCHEMES):
         from fleetmap.place.postgres import PostgresStore
 
-        return PostgresStore(url_or_path, vocab_id)
+        return PostgresStore(url_or_path, vocab_id, timeout_s=pg_timeout_s)
     from fleetmap.place.sqlite import SQLiteStore
 
     path = Path(url_or_path)

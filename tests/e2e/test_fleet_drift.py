@@ -15,7 +15,6 @@ import pytest
 from fleetmap.align.pipeline import align_views
 from fleetmap.dataset import read_recording
 from fleetmap.extract import keyframe_indices
-from fleetmap.extract_pool import extract_keyframes
 from fleetmap.fleet.closures import Closure
 from fleetmap.fleet.correct import correct_fleet, fleet_closures
 from fleetmap.fleet.drift import write_drifted
@@ -33,10 +32,27 @@ def rmse_aligned(est: np.ndarray, true: np.ndarray) -> float:
     return float(np.sqrt(((apply(kabsch(est, true), est) - true) ** 2).sum(1).mean()))
 
 
+class _Kept:
+    """The merge's stream of extracted keyframes, each one kept as it passes."""
+
+    def __init__(self, stream, kept: list):
+        self.stream, self.kept = stream, kept
+
+    def __iter__(self):
+        for kf in self.stream:
+            self.kept.append(kf)
+            yield kf
+
+    def close(self) -> None:
+        self.stream.close()
+
+
 @pytest.fixture(scope="module")
 def drifted(hololens, tmp_path_factory):
     """Drifted copies of hl_a and hl_b, their true poses (in hl_a's map frame, per frame of
-    the copy), and the merge of the copies."""
+    the copy), the merge of the copies and the keyframes it extracted."""
+    from fleetmap.services import merge as merge_job
+
     tmp = tmp_path_factory.mktemp("drift")
     T_a_b = np.loadtxt(hololens / "T_a_b.txt")
     truth, dirs = {}, {}
@@ -44,22 +60,23 @@ def drifted(hololens, tmp_path_factory):
         dirs[r] = tmp / r
         true = write_drifted(hololens / name, dirs[r], 1.0, 0.01, seed=k)
         truth[r] = np.stack([T_ref @ T for T in true])
-    out = tmp / "out"
+    out, extracted = tmp / "out", []
     args = ["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out), "--correct-drift"]
-    assert main(args) == 0
-    return dirs, truth, out, json.loads((out / "report.json").read_text())
+    real = merge_job.extract_keyframes
+    with pytest.MonkeyPatch.context() as mp:  # the merge's own extraction, not a second one
+        mp.setattr(merge_job, "extract_keyframes", lambda *a, **k: _Kept(real(*a, **k), extracted))
+        assert main(args) == 0
+    return dirs, truth, out, json.loads((out / "report.json").read_text()), extracted
 
 
 @pytest.fixture(scope="module")
 def keyframes(drifted):
-    """The copies' keyframes as the merge extracts them, and each one's true pose."""
-    dirs, truth = drifted[:2]
-    recs = [read_recording(d, robot_id=r) for r, d in dirs.items()]
-    index = {r.robot_id: keyframe_indices(r) for r in recs}
+    """The copies' keyframes as the merge extracted them, and each one's true pose."""
+    truth, extracted = drifted[1], drifted[4]
     kfs: dict[str, list] = {}
-    for kf in extract_keyframes(recs, index, workers=2):
+    for kf in extracted:
         kfs.setdefault(kf.robot_id, []).append(kf)
-    return kfs, {r: truth[r][index[r]] for r in kfs}
+    return kfs, {r: truth[r][[kf.index for kf in lst]] for r, lst in kfs.items()}
 
 
 def trajectory(path) -> np.ndarray:
@@ -67,7 +84,7 @@ def trajectory(path) -> np.ndarray:
 
 
 def test_merged_ate_is_below_half_the_rigid_floor(drifted):
-    dirs, truth, out, report = drifted
+    dirs, truth, out, report = drifted[:4]
     assert report["unmerged"] == [] and report["fleet_graph"]["applied"] == ["A", "B"]
     est = np.concatenate([trajectory(out / "trajectories" / f"{r}.txt") for r in "AB"])
     true = np.concatenate([truth[r][:, :3, 3] for r in "AB"])

@@ -1,6 +1,8 @@
-"""The live fleet map (CONTRACT section 6): robots streamed by `fleetmap stream` into a real
-`fleetmap serve place-db --aligner URL`, merged by its worker as overlaps appear; `GET /map`
-against the simulated fleet's true transforms; a restart mid-stream; `fleetmap map`."""
+"""The live fleet map (CONTRACT section 6): robots streamed by `fleetmap stream` into real
+`fleetmap serve place-db --aligner URL` processes, merged by their worker as overlaps appear:
+two replicas over one PostgreSQL database (one leads the merging at a time) serving the same
+`GET /map`, against the simulated fleet's true transforms; `fleetmap map`; the operator page;
+a restart mid-stream (SQLite)."""
 
 from __future__ import annotations
 
@@ -75,25 +77,31 @@ AUTH = {"authorization": f"Bearer {TOKEN}"}
 
 
 @pytest.fixture(scope="module")
-def live(sim_fleet, aligner_url, tmp_path_factory):
-    """A token-protected place database with a merge worker, the fleet and a wall robot
-    streamed into it, once every pair is merged and the worker has settled."""
+def live(sim_fleet, aligner_url, pg_cluster, tmp_path_factory):
+    """Two token-protected place-db replicas with a merge worker each over one PostgreSQL
+    database, the fleet and a wall robot streamed through both (comma-separated URLs), once
+    every pair is merged: (replica one, replica two, the map)."""
     sim, truth = sim_fleet
     tmp = tmp_path_factory.mktemp("live")
     env = {"FLEETMAP_PLACE_DB_OPERATOR_TOKEN": TOKEN, "FLEETMAP_TOKEN": TOKEN, **LIVE_FAST}
-    db = Service("place-db", tmp / "db", env=env, args=["--aligner", aligner_url]).start()
+    env |= {"FLEETMAP_PLACE_DB_DATABASE": pg_cluster.database()}
+    args = ["--aligner", aligner_url]
+    one = Service("place-db", tmp / "r1", env=env, args=args).start()
+    two = Service("place-db", tmp / "r2", env=env, args=args).start()
     try:
         robots = [str(sim / r) for r in truth] + [str(wall_robot(tmp / "w"))]
-        args = ["--token", TOKEN, "stream", *robots, "--place-db", db.url, "--speed", "0"]
+        urls = f"{one.url},{two.url}"
+        args = ["--token", TOKEN, "stream", *robots, "--place-db", urls, "--speed", "0"]
         assert main(args) == 0
-        m = wait_map(db.url, 3, merged_pairs=3, headers=AUTH)  # every pair overlaps: a cycle
-        yield db, m
+        m = wait_map(one.url, 3, merged_pairs=3, headers=AUTH)  # every pair overlaps: a cycle
+        yield one, two, m
     finally:
-        db.stop()
+        one.stop()
+        two.stop()
 
 
 def test_streamed_fleet_is_merged_live_and_written_by_map(live, sim_fleet, tmp_path, capsys):
-    db, m = live
+    db, _, m = live
     _, truth = sim_fleet
     assert m["reference"] == "robot0" and m["robots"] == ["robot0", "robot1", "robot2", "wall"]
     check_truth(m, truth)
@@ -135,6 +143,18 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, sim_fleet, tmp_p
         topics["/fleet/robot2/cloud"] == "foxglove.PointCloud" and "/fleet/wall/cloud" not in topics
     )
     assert topics["/tf"] == "foxglove.FrameTransform"
+
+
+def test_both_replicas_serve_one_map_each_pair_aligned_once(live, sim_fleet):
+    """Over PostgreSQL every pair is aligned by one replica only (the advisory lock), and
+    both serve the same map, within 5 cm / 2 deg of the truth."""
+    one, two, _ = live
+    m = settled(two.url)  # a GET /map (the map built from PostgreSQL) every 0.5 s
+    assert http.get(one.url + "/map", headers=AUTH).json()["transforms"] == m["transforms"]
+    assert m["reference"] == "robot0" and [u["robot"] for u in m["unmerged"]] == ["wall"]
+    check_truth(m, sim_fleet[1])
+    started = sum(s.read_log().count("live map: aligning") for s in (one, two))
+    assert started == sum(p["attempts"] for p in m["pairs"])  # no pair aligned twice
 
 
 def chromium_dom(url: str, budget_ms: int = 8000) -> str:
@@ -196,7 +216,7 @@ def test_3d_view_draws_every_placed_robot_offline(live):
     """Issue 25: the page's 3D view, three.js served by the place database itself."""
     from fleetmap.mapcloud import ROBOT_COLOURS
 
-    db, _ = live
+    db, _, _ = live
     r = http.get(db.url + "/map/robots/robot1/cloud.bin", headers=AUTH)
     n = int(r.headers["x-points"])
     assert r.status_code == 200 and len(r.content) == 15 * n and 1000 < n and len(r.content) <= 2e6
@@ -219,7 +239,7 @@ def test_3d_view_draws_every_placed_robot_offline(live):
 
 
 def test_operator_page_in_a_real_browser(live):
-    db, _ = live
+    db, _, _ = live
     m = http.get(db.url + "/map", headers=AUTH).json()
     dom = chromium_dom(f"{db.url}/#token={TOKEN}")
     assert f'data-version="{m["version"]}"' in dom  # the script ran and read the map

@@ -15,7 +15,7 @@ import pytest
 
 from fleetmap.client import align_request
 from tests.helpers import OCTET
-from tests.servers import Service
+from tests.servers import Service, http
 
 
 @pytest.mark.slow
@@ -34,7 +34,7 @@ def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots
             if stop.is_set():
                 return
             try:
-                r = httpx.post(f"{db.url}/robots/{name}/keyframes", content=data, headers=OCTET)
+                r = http.post(f"{db.url}/robots/{name}/keyframes", content=data, headers=OCTET)
             except httpx.TransportError:
                 time.sleep(0.2)  # killed mid-request: not acknowledged, try the next
                 continue
@@ -48,11 +48,11 @@ def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots
         while not stop.is_set():
             k += 1
             try:
-                q = httpx.post(f"{db.url}/query", content=robots[0][1][k % 20], headers=OCTET)
+                q = http.post(f"{db.url}/query", content=robots[0][1][k % 20], headers=OCTET)
                 statuses.append(q.status_code)
                 T = np.eye(4)
                 T[0, 3] = k
-                r = httpx.put(
+                r = http.put(
                     f"{db.url}/links/{robots[0][0]}/{robots[1][0]}",
                     json={"transform": T.tolist()},
                     timeout=60,
@@ -60,7 +60,7 @@ def test_chaos_loses_nothing_acknowledged(tmp_path, fleet_frames, tum_two_robots
                 statuses.append(r.status_code)
                 if r.status_code == 200:
                     link[0] = k
-                a = httpx.post(f"{aligner_url}/align", timeout=120, **align_request(pairs))
+                a = http.post(f"{aligner_url}/align", timeout=120, **align_request(pairs))
                 statuses.append(a.status_code)
             except httpx.TransportError:
                 time.sleep(0.2)

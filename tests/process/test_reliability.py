@@ -229,13 +229,15 @@ def test_queries_and_links_racing_deletes_never_answer_5xx(tmp_path, sun3d_frame
 
 def test_slowloris_connections_are_closed(tmp_path):
     """50 connections sending their headers slowly were never closed; now each is cut off
-    at the header deadline (10 s) while the service keeps answering."""
+    at the header deadline (10 s; 2 s here, FLEETMAP_PLACE_DB_HEADER_TIMEOUT_S) while the
+    service keeps answering."""
     import socket
     import time
 
     from tests.servers import Service, http
 
-    svc = Service("place-db", tmp_path / "db").start()
+    env = {"FLEETMAP_PLACE_DB_HEADER_TIMEOUT_S": "2"}
+    svc = Service("place-db", tmp_path / "db", env=env).start()
     socks = []
     try:
         for _ in range(20):

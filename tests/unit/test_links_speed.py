@@ -109,11 +109,12 @@ def test_sun3d_link_overlaps_are_unchanged(sun3d, sun3d_keyframes):
 
 @pytest.fixture(scope="module")
 def hololens_frames(hololens) -> dict[str, list[Frame]]:
-    """Every third keyframe of the HoloLens robots, as the merge extracts them."""
+    """Every third keyframe of the HoloLens robots, as the merge extracts them (in this
+    process: a unit test starts no process)."""
     recs = [read_recording(hololens / r, robot_id=r) for r in ("hl_a", "hl_b")]
     index = {r.robot_id: keyframe_indices(r)[::3] for r in recs}
     out: dict[str, list[Frame]] = {}
-    for kf in extract_keyframes(recs, index, workers=2):
+    for kf in extract_keyframes(recs, index, workers=1):
         out.setdefault(kf.robot_id, []).append(kf.frame)
     return out
 
