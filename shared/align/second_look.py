@@ -27,7 +27,11 @@ from fleetmap.matching import match_descriptors
 class SecondLook:
     views: int = 6  # per robot, spread over the first look's views
     max_tilt: int = 4
-    per_view: int = 200  # SIFT features per simulated tilt
+    # SIFT features per simulated tilt. On the kept recall pairs (docs/ALIGNER.md): 120
+    # lost three of the four HoloLens second-look merges; 320 kept them and merged one
+    # more (31% shared, 1.1 cm) at 1.3x the cost of 200 (24 against 18.5 s for 12 views
+    # on a loaded machine); SUN3D's unpinned merges and the cross pairs stayed refused
+    per_view: int = 320
     ratio: float = 0.85
 
 
