@@ -8,6 +8,10 @@ import logging
 
 log = logging.getLogger("fleetmap.http")
 
+#: Seconds a client has to send a request's headers (`header_timeout_protocol`); the
+#: services' `header_timeout_s` setting.
+HEADER_TIMEOUT_S = 10.0
+
 
 class JsonFormatter(logging.Formatter):
     """One JSON object per log line, with the request fields the middleware attaches."""
@@ -27,7 +31,7 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(out)
 
 
-def header_timeout_protocol(timeout_s: float = 10.0):
+def header_timeout_protocol(timeout_s: float = HEADER_TIMEOUT_S):
     """uvicorn's h11 protocol with a deadline for every request's headers: a client that
     opens connections and sends its headers a byte at a time (slowloris) is cut off after
     `timeout_s` (request bodies have their own, `fleetmap.services.body.BODY_CHUNK_TIMEOUT_S`)."""

@@ -108,6 +108,11 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def residuals(T: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """How far (metres, shape (N,)) T puts each point of X (N, 3) from its match in Y."""
+    return np.linalg.norm(apply(T, X) - Y, axis=1)
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle in degrees of a 3x3 rotation matrix (numerically safe)."""
     c = (np.trace(R[:3, :3]) - 1.0) / 2.0

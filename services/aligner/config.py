@@ -6,6 +6,7 @@ from pydantic import SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.align.types import AlignParams
+from fleetmap.services.serving import HEADER_TIMEOUT_S
 from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
@@ -22,7 +23,8 @@ class Settings(BaseSettings):
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = 128 * 1024 * 1024  # enforced while streaming, chunked or not
-    header_timeout_s: float = 10.0  # a request's headers within this, else closed (slowloris)
+    # a request's headers within this many seconds, else the connection is closed (slowloris)
+    header_timeout_s: float = HEADER_TIMEOUT_S
     # decoded colour + depth pixels of all requests being aligned at once (about 8 bytes
     # each while aligned): bounds memory whatever the concurrency; more waits, then 503
     max_pixels_in_flight: int = 32 * 1024 * 1024

@@ -12,7 +12,8 @@ from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
 from fleetmap.place.live import LiveParams
-from fleetmap.place.store import DB_FILE, POSTGRES_SCHEMES
+from fleetmap.place.store import DB_FILE, PG_TIMEOUT_S, POSTGRES_SCHEMES
+from fleetmap.services.serving import HEADER_TIMEOUT_S
 from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
@@ -34,7 +35,7 @@ class Settings(BaseSettings):
     # postgresql://USER[:PASS]@HOST:PORT/DB: replicas over one database; unset: SQLite in
     # data_dir (the embedded default)
     database: SecretStr | None = None
-    pg_timeout_s: float = 5.0  # PostgreSQL: a pooled connection within this, else 503
+    pg_timeout_s: float = PG_TIMEOUT_S  # PostgreSQL: a pooled connection within this, else 503
     db_file: str = DB_FILE
     vocabulary: Path | None = None  # None: the shipped default
     # access control: none configured = open (logged at start-up)
@@ -42,7 +43,8 @@ class Settings(BaseSettings):
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = MAX_FRAME_BYTES
     max_view_bytes: int = 16 * 1024 * 1024  # a keyframe's colour and depth images together
-    header_timeout_s: float = 10.0  # a request's headers within this, else closed (slowloris)
+    # a request's headers within this many seconds, else the connection is closed (slowloris)
+    header_timeout_s: float = HEADER_TIMEOUT_S
     # the cascade's parameters (thesis Algorithm 3), nested:
     # FLEETMAP_PLACE_DB_CASCADE__GIST_THRESHOLD=0.7, FLEETMAP_PLACE_DB_CASCADE__MATCH__RATIO=0.8
     cascade: CascadeParams = CascadeParams()

@@ -10,7 +10,7 @@ import numpy as np
 
 from fleetmap.align.types import AlignParams, Hypothesis
 from fleetmap.correspondences import Correspondences
-from fleetmap.geometry import apply, displacement_rms, invert, transform_error
+from fleetmap.geometry import apply, displacement_rms, invert, residuals, transform_error
 from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
 from fleetmap.registration import ransac_rigid
 
@@ -77,7 +77,7 @@ def _judge(h: Hypothesis, cloud_b, cloud_a, views_a, views_b, margin: float, fit
 
 def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, int]:
     """Truncated mean residual of the raw matches under T, and how many are within tol."""
-    r = np.linalg.norm(apply(T, R.X) - R.Y, axis=1)
+    r = residuals(T, R.X, R.Y)
     return float(np.minimum(r, tol).mean()), int(np.count_nonzero(r < tol))
 
 
@@ -139,7 +139,7 @@ def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p:
     half the RANSAC tolerance; those whose count is within the noise of a difference of two
     counts (the square root of their sum) of the most are tied, and their surfaces decide
     (`surface_rmse`, depth only)."""
-    half = [int(np.count_nonzero(np.linalg.norm(apply(T, R.X) - R.Y, axis=1) < p.ransac_tol_m / 2))
+    half = [int(np.count_nonzero(residuals(T, R.X, R.Y) < p.ransac_tol_m / 2))
             for T, _ in cands]  # fmt: skip
     top = max(half)
     tied = [k for k, n in enumerate(half) if top - n <= np.sqrt(top + n)]

@@ -29,7 +29,7 @@ from fleetmap.align.validation import better_nearby, holdout_residual, spread
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
-from fleetmap.geometry import apply, displacement_rms, invert, transform_error
+from fleetmap.geometry import apply, displacement_rms, invert, residuals, transform_error
 from fleetmap.mapcloud import ViewsCloud, overlap_fitness
 from fleetmap.registration import kabsch
 
@@ -139,12 +139,12 @@ def agreeing(T: np.ndarray, R: Correspondences, tol: float) -> np.ndarray:
     two whole maps that bend settles a few centimetres off where the matched views are
     (HoloLens walk with 1 deg/m of drift: 63 matches within 12 cm, 11 within 8 cm; their own
     fit 8 cm from T). The geometry gate judges T itself."""
-    r = np.linalg.norm(apply(T, R.X) - R.Y, axis=1)
+    r = residuals(T, R.X, R.Y)
     inl, near = r < tol, r < 1.5 * tol
     if near.sum() < 3:
         return inl
     own = kabsch(R.X[near], R.Y[near])
-    inl_own = np.linalg.norm(apply(own, R.X) - R.Y, axis=1) < tol
+    inl_own = residuals(own, R.X, R.Y) < tol
     return inl_own if inl_own.sum() > inl.sum() else inl
 
 

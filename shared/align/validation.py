@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fleetmap.estimators import MLPEstimator
-from fleetmap.geometry import apply, displacement_rms
+from fleetmap.geometry import apply, displacement_rms, residuals
 from fleetmap.registration import fit_affine, kabsch
 
 
@@ -87,7 +87,7 @@ def better_nearby(
     led there (surfaces that slide along each other), the matches prefer a place nearby:
     SUN3D windows merged 10-15 cm from the truth had 77-124 matches agreeing with an
     alignment 15-35 cm away against 31-73 for the merge (docs/ALIGNER.md)."""
-    r = np.linalg.norm(apply(T, X) - Y, axis=1)
+    r = residuals(T, X, Y)
     n_T = int(np.count_nonzero(r < tol))
     near = np.flatnonzero(r < reach + tol)
     if len(near) < 3:
@@ -104,16 +104,16 @@ def better_nearby(
         Tc = kabsch(Xn[i], Yn[i])
         if displacement_rms(Tc, T, probe) > reach:
             continue
-        n = int(np.count_nonzero(np.linalg.norm(apply(Tc, Xs) - Ys, axis=1) < tol))
+        n = int(np.count_nonzero(residuals(Tc, Xs, Ys) < tol))
         if n > best_n:
             best_n, best_T = n, Tc
     if best_T is None:
         return None
-    agree = np.linalg.norm(apply(best_T, Xn) - Yn, axis=1) < tol
+    agree = residuals(best_T, Xn, Yn) < tol
     refit = kabsch(Xn[agree], Yn[agree]) if agree.sum() >= 3 else best_T
     if displacement_rms(refit, T, probe) <= reach:
         best_T = refit
-    n = int(np.count_nonzero(np.linalg.norm(apply(best_T, X) - Y, axis=1) < tol))
+    n = int(np.count_nonzero(residuals(best_T, X, Y) < tol))
     if displacement_rms(best_T, T, probe) <= tol or n - n_T <= np.sqrt(n + n_T):
         return None
     return best_T, n, n_T

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.frame import Frame
-from fleetmap.geometry import apply, invert
+from fleetmap.geometry import apply, invert, residuals
 from fleetmap.matching import DEFAULT_MATCH_PARAMS, match_descriptors, verify_pair
 from fleetmap.registration import ransac_rigid
 
@@ -88,7 +88,7 @@ def fit_information(T: np.ndarray, pb: np.ndarray, pa: np.ndarray, floor_m: floa
     together pin the rotation loosely; a fixed sigma would take such a closure for exact
     (HoloLens walk: feature closures 2.6-6 cm and 0.6-2.1 deg from the truth)."""
     n = len(pb)
-    r = np.linalg.norm(apply(T, pb) - pa, axis=1)
+    r = residuals(T, pb, pa)
     sigma = max(float(np.sqrt((r**2).sum() / max(n - 6, 1))), floor_m)
     info = np.zeros((6, 6))
     for p in pb:

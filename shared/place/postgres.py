@@ -30,7 +30,14 @@ import numpy as np
 
 from fleetmap.errors import Conflict, StorageCorrupt, Unavailable, UnknownKeyframe
 from fleetmap.place import postgres_schema as schema
-from fleetmap.place.store import IndexRows, LinkRow, OverlapRow, Pending, WinnerRow
+from fleetmap.place.store import (
+    PG_TIMEOUT_S,
+    IndexRows,
+    LinkRow,
+    OverlapRow,
+    Pending,
+    WinnerRow,
+)
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +49,9 @@ class PostgresStore:
 
     shared = True  # other processes write the same database
 
-    def __init__(self, url: str, vocab_id: str, pool_size: int = 8, timeout_s: float = 5.0):
+    def __init__(
+        self, url: str, vocab_id: str, pool_size: int = 8, timeout_s: float = PG_TIMEOUT_S
+    ):
         from psycopg_pool import ConnectionPool
 
         self.url, self.where = url, schema.redacted(url)

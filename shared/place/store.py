@@ -84,6 +84,8 @@ WinnerRow = tuple[int, int, int, int]
 
 #: The URL schemes `open_store` opens with PostgreSQL.
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+#: Seconds to wait for a pooled PostgreSQL connection before answering `Unavailable` (503).
+PG_TIMEOUT_S = 5.0
 #: The SQLite file `open_store` opens in a folder.
 DB_FILE = "place_db.sqlite"
 
@@ -149,7 +151,7 @@ class SharedStore(Store, Protocol):
     def claim(self, compute: Callable[[int], tuple | None]) -> int | None: ...
 
 
-def open_store(url_or_path: str | Path, vocab_id: str, pg_timeout_s: float = 5.0) -> Store:
+def open_store(url_or_path: str | Path, vocab_id: str, pg_timeout_s: float = PG_TIMEOUT_S) -> Store:
     """The backend where the data lives: a postgresql:// URL opens PostgreSQL (replicas over
     one database; a pooled connection within `pg_timeout_s`, else `Unavailable`); anything
     else SQLite, `DB_FILE` in a folder or else the file named."""

@@ -23,6 +23,26 @@ def error_at_cameras(T, T_true, robot_dir) -> tuple[float, float]:
     return float(err), rotation_angle_deg(np.linalg.inv(T_true)[:3, :3] @ T[:3, :3])
 
 
+def merge_windows(tmp_path, a, b, seed: int, T_true_src: np.ndarray):
+    """Windows `a`, `b` ((recording folder, slice)) cut as robots A and B in random map
+    frames (`seed`, `seed` + 1), merged; (its one fit, the error of B's transform at B's
+    cameras (`error_at_cameras`) against the truth; T_true_src maps b's source frame into
+    a's)."""
+    M = {r: random_frame(s) for s, r in enumerate("AB", start=seed)}
+    for r, (src, frames) in zip("AB", (a, b), strict=True):
+        cut_recording(src, frames, tmp_path / r, M[r])
+    out = tmp_path / "out"
+    assert (
+        main(["-q", "merge", f"A={tmp_path / 'A'}", f"B={tmp_path / 'B'}", "--out", str(out)]) == 0
+    )
+    report = json.loads((out / "report.json").read_text())
+    (fit,) = report["fits"]
+    if not fit["merged"]:
+        return fit, None
+    T_true = M["A"] @ T_true_src @ np.linalg.inv(M["B"])
+    return fit, error_at_cameras(np.array(report["transforms"]["B"]), T_true, tmp_path / "B")
+
+
 def test_unverified_revisit_is_merged_and_another_building_is_not(hololens, sun3d, tmp_path):
     """Two windows of the HoloLens walk sharing half their surfaces (hl_a frames 15-75, hl_b
     15-75) get no keyframe pair verified by the cascade (so they stayed unmerged before);
@@ -52,19 +72,15 @@ def test_room_walked_the_other_way_is_merged_on_a_second_look(hololens, tmp_path
     direction: 1 of 730 raw MSER+SIFT matches agreed with the truth and the gate refused
     ("0 inlier correspondences"). Affine-simulated SIFT on a few views of each (the second
     look) finds matches that agree; merged within 5 cm / 2 deg of the truth."""
-    T_hl = np.loadtxt(hololens / "T_a_b.txt")
-    M = {r: random_frame(seed) for seed, r in enumerate("AB", start=31)}
-    cut_recording(hololens / "hl_a", slice(15, 75), tmp_path / "A", M["A"])
-    cut_recording(hololens / "hl_b", slice(30, 90), tmp_path / "B", M["B"])
-    out = tmp_path / "out"
-    assert (
-        main(["-q", "merge", f"A={tmp_path / 'A'}", f"B={tmp_path / 'B'}", "--out", str(out)]) == 0
+    fit, err = merge_windows(
+        tmp_path,
+        (hololens / "hl_a", slice(15, 75)),
+        (hololens / "hl_b", slice(30, 90)),
+        31,
+        np.loadtxt(hololens / "T_a_b.txt"),
     )
-    report = json.loads((out / "report.json").read_text())
-    (fit,) = report["fits"]
     assert fit["merged"] and fit["method"].endswith("+asift"), fit
-    T_true = M["A"] @ T_hl @ np.linalg.inv(M["B"])
-    dt, dr = error_at_cameras(np.array(report["transforms"]["B"]), T_true, tmp_path / "B")
+    dt, dr = err
     assert dt < 0.05 and dr < 2.0, (dt, dr, fit)
 
 
@@ -74,19 +90,14 @@ def test_second_look_merges_only_what_its_matches_pin(sun3d, tmp_path):
     hypothesis slid along the study room's walls and floor to a merge 14.6 cm from the
     truth at B's cameras (these frames; in the recall bench: 77 matches agreed with an
     alignment 0.22 m away, 31 with the merge). Now: merged within 5 cm, or refused."""
-    T_ab = np.loadtxt(sun3d / "T_a_b.txt")
-    M = {r: random_frame(seed) for seed, r in enumerate("AB", start=42)}
-    cut_recording(sun3d / "robot_a", slice(15, 35), tmp_path / "A", M["A"])
-    cut_recording(sun3d / "robot_b", slice(20, 40), tmp_path / "B", M["B"])
-    out = tmp_path / "out"
-    assert (
-        main(["-q", "merge", f"A={tmp_path / 'A'}", f"B={tmp_path / 'B'}", "--out", str(out)]) == 0
+    fit, err = merge_windows(
+        tmp_path,
+        (sun3d / "robot_a", slice(15, 35)),
+        (sun3d / "robot_b", slice(20, 40)),
+        42,
+        np.loadtxt(sun3d / "T_a_b.txt"),
     )
-    report = json.loads((out / "report.json").read_text())
-    (fit,) = report["fits"]
     if fit["merged"]:
-        T_true = M["A"] @ T_ab @ np.linalg.inv(M["B"])
-        dt, dr = error_at_cameras(np.array(report["transforms"]["B"]), T_true, tmp_path / "B")
-        assert dt < 0.05, (dt, dr, fit)
+        assert err[0] < 0.05, (err, fit)
     else:
         assert fit["reason"], fit
