@@ -222,9 +222,11 @@ def _merge_command(sub) -> None:
     p.add_argument("--pcd", action="store_true", help="also write merged.pcd (PCL's format)")
     p.add_argument(
         "--correct-drift",
-        action="store_true",
-        help="optimise one pose graph over every robot's keyframes and correct maps that bend "
-        "(drift); slower: loop closures are searched in every robot",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="one pose graph over every robot's keyframes corrects maps that bend (drift); "
+        "on by default, --no-correct-drift keeps every map rigid and skips the loop-closure "
+        "search (a few seconds)",
     )
     p.add_argument(
         "--voxel", type=float, default=0.03, metavar="M", help="merged map voxel size (0.03 m)"

@@ -65,7 +65,7 @@ def run_merge(
     token: str | None = None,
     workers: int | None = None,
     pcd: bool = False,
-    correct_drift: bool = False,
+    correct_drift: bool = True,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
     overview.png, overlap_matrix.png, fleet.mcap; the links are registered meanwhile.

@@ -149,10 +149,11 @@ def fleet_closures(
     edges: dict,
     overlaps: list[dict],
     params: CorrectionParams = CorrectionParams(),
+    refine: bool = True,
 ) -> list[Closure]:
     """The fleet's loop closures: verified feature closures (refined against depth where
-    ICP agrees), and the pairwise fits at the place database's overlaps of robots that no
-    feature closure links."""
+    ICP agrees, if `refine`), and the pairwise fits at the place database's overlaps of
+    robots that no feature closure links."""
     from threadpoolctl import threadpool_limits
 
     frames = {r: [k.frame for k in kfs] for r, kfs in keyframes.items()}
@@ -160,7 +161,9 @@ def fleet_closures(
     poses = {r: np.stack([f.T_map_cam for f in fs]) for r, fs in frames.items()}
     pairs = overlap_pairs(overlaps, stamps)
     with threadpool_limits(1):  # many small problems: BLAS and OpenMP threads only contend
-        closures = refine_with_depth(find_closures(frames, pairs, params.closure), keyframes)
+        closures = find_closures(frames, pairs, params.closure)
+        if refine:
+            closures = refine_with_depth(closures, keyframes, params.closure)
     # a rigid fit of two bent maps is right at one place at best; where the robots' own
     # keyframes verify a closure, that measures them exactly, drift-free. The fit links
     # only robots that no closure links (HoloLens walk, 1 deg/m: ATE 5.6 cm without fit
@@ -182,14 +185,30 @@ def correct_fleet(
     """Drift-corrected placement of every placed robot. keyframes[R]: robot R's extracted
     keyframes in time order (`fleetmap.extract_pool.Keyframe`: frame structure with the
     camera-to-map pose and features with 3D points, map-cloud points); `closures`: the
-    fleet's closures when already found (`fleet_closures`)."""
+    fleet's closures when already found (`fleet_closures`).
+
+    Without `closures`, the graph is first solved on the feature closures alone (no ICP):
+    where no robot bends by half `min_bend_m` there, the fleet has shown no drift the
+    refined graph could apply, and the rigid placement stands at a fraction of the cost
+    (the depth refinement is 60-85% of the closures' time: docs/BENCHMARKS.md "Drift")."""
     keyframes = {r: kfs for r, kfs in keyframes.items() if r in placed and kfs}
     if reference not in keyframes:
         return FleetCorrection({}, Solution({}, np.zeros(0), 0.0))
-    if closures is None:
-        closures = fleet_closures(keyframes, edges, overlaps, params)
     stamps = {r: np.array([k.frame.stamp for k in kfs]) for r, kfs in keyframes.items()}
     poses = {r: np.stack([k.frame.T_map_cam for k in kfs]) for r, kfs in keyframes.items()}
-    sol = optimise(poses, placed, closures, reference, params.graph)
-    out = {r: _robot(stamps[r], poses[r], sol.poses[r], placed[r], params) for r in sol.poses}
-    return FleetCorrection(out, sol, keyframes)
+
+    def solve(closures: list[Closure]) -> FleetCorrection:
+        sol = optimise(poses, placed, closures, reference, params.graph)
+        out = {r: _robot(stamps[r], poses[r], sol.poses[r], placed[r], params) for r in sol.poses}
+        return FleetCorrection(out, sol, keyframes)
+
+    if closures is not None:
+        return solve(closures)
+    from threadpoolctl import threadpool_limits
+
+    found = fleet_closures(keyframes, edges, overlaps, params, refine=False)
+    quick = solve(found)
+    if all(c.bend_m < params.min_bend_m / 2 for c in quick.robots.values()):
+        return quick
+    with threadpool_limits(1):
+        return solve(refine_with_depth(found, keyframes, params.closure))

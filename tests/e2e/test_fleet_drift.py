@@ -147,6 +147,8 @@ def test_without_drift_the_rigid_placement_stands(keyframes):
     for r, c in fleet.robots.items():
         gap = np.linalg.norm(c.T_ref_kf[:, :3, 3] - true_kf[r][:, :3, 3], axis=1).max()
         assert not c.applied and gap < 0.002, (r, gap, c.bend_m)
+    # the feature closures alone showed no bend: no ICP refinement was paid for
+    assert fleet.summary()["closures"]["depth"] == 0
 
 
 def test_bent_maps_merge_from_overlaps_that_once_refused(drifted):
