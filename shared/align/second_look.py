@@ -12,6 +12,9 @@ look's raw matches: the same hypotheses, free-space test and gate judge them all
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -43,19 +46,59 @@ def spread_views(views: list, n: int) -> list:
     return [views[int(k)] for k in np.linspace(0, len(views) - 1, n).round()]
 
 
+class _Recent:
+    """The last `size` results by key, shared by the aligner's request threads. The live
+    map retries a refused pair as its robots' keyframes grow, mostly with the same views;
+    their ASIFT features and view-pair matches are then not computed again."""
+
+    def __init__(self, size: int):
+        self.size, self._items, self._lock = size, OrderedDict(), threading.Lock()
+
+    def get(self, key, make):
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        value = make()  # outside the lock: two threads may both compute one, rarely
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+        return value
+
+
+_FEATURES = _Recent(48)  # about 6,000 features (0.8 MB) a view
+_MATCHES = _Recent(1024)
+
+
+def image_key(image: np.ndarray) -> bytes:
+    """A digest of an image's pixels and shape."""
+    h = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16)
+    h.update(repr(image.shape).encode())
+    return h.digest()
+
+
 def affine_matches(pairs, first_index: int, s: SecondLook = SecondLook()) -> Correspondences:
     """Raw (mutual, ratio-test) ASIFT matches of every pair of `s.views` views of each
-    robot, lifted to 3D in each robot's map frame; pair indices from `first_index` on."""
+    robot, lifted to 3D in each robot's map frame; pair indices from `first_index` on.
+    Features and matches of views seen in recent requests are reused (`_Recent`)."""
     va = spread_views(unique_views(pairs, 0), s.views)
     vb = spread_views(unique_views(pairs, 1), s.views)
     views = va + vb
+    keys = [(image_key(v.rgb), s.max_tilt, s.per_view) for v in views]
+
+    def features(k: int):
+        return _FEATURES.get(keys[k], lambda: affine_features(views[k].rgb, *keys[k][1:]))
+
     with ThreadPoolExecutor(2) as ex:  # OpenCV releases the GIL
-        feats = list(ex.map(lambda v: affine_features(v.rgb, s.max_tilt, s.per_view), views))
+        feats = list(ex.map(features, range(len(views))))
     fa, fb = feats[: len(va)], feats[len(va) :]
     grid = [(a, b) for a in range(len(va)) for b in range(len(vb))]
 
     def match(ab: tuple[int, int]):
-        return match_descriptors(fa[ab[0]].descriptors, fb[ab[1]].descriptors, s.ratio)
+        a, b = fa[ab[0]].descriptors, fb[ab[1]].descriptors
+        key = (keys[ab[0]], keys[len(va) + ab[1]], s.ratio)
+        return _MATCHES.get(key, lambda: match_descriptors(a, b, s.ratio))
 
     with ThreadPoolExecutor(2) as ex:  # numpy's product, sort and partition release the GIL
         found = list(ex.map(match, grid))

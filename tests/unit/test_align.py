@@ -62,3 +62,23 @@ def test_surface_rmse_prefers_the_truth_to_a_slide(hololens):
         slid = T.copy()
         slid[axis, 3] += 0.03
         assert surface_rmse(clouds[1], clouds[0], slid, 0.045) > best
+
+
+def test_second_look_reuses_recent_views_features_and_matches(hololens, monkeypatch):
+    """The live map retries a refused pair with mostly the same views: their ASIFT features
+    and view-pair matches come from the last requests, and the matches are the same."""
+    from fleetmap.align import second_look as sl
+    from fleetmap.pairs import load_view
+
+    ra, rb = (read_recording(hololens / n) for n in ("hl_a", "hl_b"))
+    pairs = [(load_view(ra, i), load_view(rb, j)) for i, j in ((20, 30), (40, 45))]
+    look = sl.SecondLook(views=2, per_view=60)
+    computed = []
+    real = sl.affine_features
+    monkeypatch.setattr(sl, "affine_features", lambda *a: computed.append(1) or real(*a))
+    first = sl.affine_matches(pairs, 0, look)
+    assert len(computed) == 4 and len(first) > 0
+    again = [(load_view(ra, i), load_view(rb, j)) for i, j in ((20, 30), (40, 45))]
+    second = sl.affine_matches(again, 0, look)  # new view objects, same images
+    assert len(computed) == 4  # nothing computed again
+    assert np.array_equal(first.X, second.X) and np.array_equal(first.Y, second.Y)
