@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetmap.align import AlignParams, align_views, baseline, fpfh_ransac_icp
+from fleetmap.align import METHODS, AlignParams, align_views, fpfh_ransac_icp
 from fleetmap.correspondences import RGBDView
 from fleetmap.dataset import load_depth, load_rgb, read_recording
 from fleetmap.extract import keyframe_indices
@@ -73,7 +73,7 @@ def main() -> None:
     p = AlignParams()
     for m in ("icp", "rigid"):
         t = time.perf_counter()
-        r = baseline(pairs, m, p)
+        r = METHODS[m](pairs, p)
         row(m, "-", r.T_a_b, time.perf_counter() - t)
 
 

@@ -7,7 +7,7 @@ import logging
 import os
 import sys
 
-from fleetmap.align.types import METHODS
+from fleetmap.align.methods import METHODS
 from fleetmap.errors import FleetmapError
 from fleetmap.services import commands
 

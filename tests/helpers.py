@@ -52,14 +52,12 @@ def post_with_view(client, robot: str, frame: bytes, view: dict) -> int:
 def real_align(calls: list):
     """The aligner's pipeline in-process, as `LiveMap` calls it; each call's number of
     pairs appended to `calls`."""
-    from fleetmap.align import DEFAULT_ALIGN, align_request
+    from fleetmap.align import align_views
 
     def align(pairs):
         calls.append(len(pairs))
         views = {id(v): v.decoded() for pair in pairs for v in pair}
-        return align_request(
-            [(views[id(a)], views[id(b)]) for a, b in pairs], "default", DEFAULT_ALIGN
-        )[0]
+        return align_views([(views[id(a)], views[id(b)]) for a, b in pairs]).to_dict()
 
     return align
 

@@ -10,7 +10,8 @@ from fastapi import APIRouter, Depends, Request, Response
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from fleetmap.align import align_request
+from fleetmap.align import merged_cloud, method
+from fleetmap.align.types import AlignParams
 from fleetmap.camera import Intrinsics
 from fleetmap.correspondences import RGBDView
 from fleetmap.errors import BadInput, PayloadTooLarge, UnknownKeyframe
@@ -30,6 +31,21 @@ FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
 def healthz(clouds: Clouds) -> s.Health:
     """Liveness and the merged clouds held for download."""
     return s.Health(status="ok", clouds_cached=len(clouds))
+
+
+def align_answer(
+    pairs, name: str, p: AlignParams, want_cloud: bool, colour: str
+) -> tuple[dict, tuple[bytes, int] | None]:
+    """One request's answer: the result's fields, and the merged cloud as PLY bytes with
+    its point count when asked for and merged."""
+    from fleetmap.mapcloud import ply_bytes
+
+    res = method(name)(pairs, p)
+    cloud = None
+    if want_cloud and res.merged:
+        pts, cols = merged_cloud(pairs, res, colour, p.voxel_m)
+        cloud = (ply_bytes(pts, cols), len(pts))
+    return res.to_dict(), cloud
 
 
 def _view(files: dict[str, bytes], name: str, vm: s.ViewMeta) -> RGBDView:
@@ -152,7 +168,7 @@ async def align(
             pairs = await run_in_threadpool(_views, files, meta)
             del files
             result, cloud = await run_in_threadpool(
-                align_request, pairs, meta.method, st.align, meta.cloud, meta.colour
+                align_answer, pairs, meta.method, st.align, meta.cloud, meta.colour
             )
     answer = s.AlignAnswer(**result)
     if cloud is not None:

@@ -18,7 +18,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from fleetmap.align.types import METHODS
+from fleetmap.align.methods import METHODS
 from fleetmap.services.schemas import Matrix4
 
 

@@ -1,6 +1,7 @@
-"""Alignments to compare the default with: one estimator alone on the visual
-correspondences, ICP from identity, the map_merge_3d recipe (FPFH + RANSAC + ICP), and
-`select_model`, the cross-validated choice among closed forms and the MLP."""
+"""Alignments to compare the default with (`BASELINES`, registered in
+`fleetmap.align.methods`): one estimator alone on the visual correspondences, ICP from
+identity, the map_merge_3d recipe (FPFH + RANSAC + ICP); and `select_model`, the
+cross-validated choice among closed forms and the MLP."""
 
 from __future__ import annotations
 
@@ -8,86 +9,72 @@ import time
 
 import numpy as np
 
-from fleetmap.align.types import METHODS, AlignParams, AlignResult, unique_views
+from fleetmap.align.types import AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import kfold_residuals
 from fleetmap.correspondences import pooled_correspondences
-from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply
 from fleetmap.mapcloud import REG, icp, views_cloud
 from fleetmap.registration import MODELS
 
 
-def run_method(pairs, method: str, p: AlignParams) -> AlignResult:
-    """Align with one of `METHODS`: the gated default or a baseline."""
-    if method not in METHODS:
-        raise BadInput(f"Unknown method {method!r}; expected one of {', '.join(METHODS)}")
-    if method == "default":
-        from fleetmap.align.pipeline import align_views
+def _closed_form(name: str):
+    def run(pairs, p: AlignParams) -> AlignResult:
+        from fleetmap.estimators import AffineEstimator, RigidEstimator, SimilarityEstimator
 
-        return align_views(pairs, p)
-    return baseline(pairs, method, p)
+        kinds = {"rigid": RigidEstimator, "similarity": SimilarityEstimator}
+        cls = kinds.get(name, AffineEstimator)
+        t0, C = time.perf_counter(), pooled_correspondences(pairs)
+        e = cls(threshold=p.ransac_tol_m).fit(C.X, C.Y)
+        return AlignResult(
+            True, f"{name} in RANSAC (no gate)", e.T_, name, len(C), int(e.inliers_.sum()),
+            seconds=time.perf_counter() - t0,
+        )  # fmt: skip
+
+    return run
 
 
-def baseline(pairs, method: str, p: AlignParams) -> AlignResult:
-    """One estimator alone, for comparison: closed form or MLP on the pooled visual
-    correspondences, or ICP from identity on the map clouds (the thesis's ICP baseline)."""
-    from fleetmap.estimators import AffineEstimator, RigidEstimator, SimilarityEstimator
+def mlp_alone(pairs, p: AlignParams) -> AlignResult:
+    """The thesis MLP on the pooled visual correspondences, no gate."""
+    t0, C = time.perf_counter(), pooled_correspondences(pairs)
+    m = MLPEstimator().fit(C.X, C.Y)
+    return AlignResult(
+        True, "thesis MLP (no gate)", m.affine_, "mlp", len(C), len(C), mlp=m,
+        seconds=time.perf_counter() - t0,
+    )  # fmt: skip
 
+
+def icp_from_identity(pairs, p: AlignParams) -> AlignResult:
+    """ICP from identity on the two robots' map clouds (the thesis's ICP baseline)."""
     t0 = time.perf_counter()
-    if method == "fpfh":
-        va, vb = unique_views(pairs, 0), unique_views(pairs, 1)
-        T, fit = fpfh_ransac_icp(va, vb)
-        return AlignResult(
-            True,
-            "FPFH + RANSAC + point-to-plane ICP on the depth clouds (no gate)",
-            T,
-            "fpfh",
-            fitness=fit,
-            seconds=time.perf_counter() - t0,
-        )
-    if method == "icp":
-        ca = views_cloud(unique_views(pairs, 0), voxel=p.voxel_m)
-        cb = views_cloud(unique_views(pairs, 1), voxel=p.voxel_m)
-        T, fit, rmse = icp(cb, ca, np.eye(4))
-        return AlignResult(
-            True,
-            "ICP from identity (no gate)",
-            T,
-            "icp",
-            fitness=fit,
-            seconds=time.perf_counter() - t0,
-        )
-    C = pooled_correspondences(pairs)
-    est = {
-        "rigid": RigidEstimator,
-        "similarity": SimilarityEstimator,
-        "affine": AffineEstimator,
-    }.get(method)
-    if est is not None:
-        e = est(threshold=p.ransac_tol_m).fit(C.X, C.Y)
-        return AlignResult(
-            True,
-            f"{method} in RANSAC (no gate)",
-            e.T_,
-            method,
-            len(C),
-            int(e.inliers_.sum()),
-            seconds=time.perf_counter() - t0,
-        )
-    if method == "mlp":
-        m = MLPEstimator().fit(C.X, C.Y)
-        return AlignResult(
-            True,
-            "thesis MLP (no gate)",
-            m.affine_,
-            "mlp",
-            len(C),
-            len(C),
-            mlp=m,
-            seconds=time.perf_counter() - t0,
-        )
-    raise BadInput(f"Unknown method {method!r}")
+    ca = views_cloud(unique_views(pairs, 0), voxel=p.voxel_m)
+    cb = views_cloud(unique_views(pairs, 1), voxel=p.voxel_m)
+    T, fit, _ = icp(cb, ca, np.eye(4))
+    return AlignResult(
+        True, "ICP from identity (no gate)", T, "icp", fitness=fit,
+        seconds=time.perf_counter() - t0,
+    )  # fmt: skip
+
+
+def recipe(pairs, p: AlignParams) -> AlignResult:
+    """The map_merge_3d recipe on the depth clouds (`fpfh_ransac_icp`), no gate."""
+    t0 = time.perf_counter()
+    T, fit = fpfh_ransac_icp(unique_views(pairs, 0), unique_views(pairs, 1))
+    return AlignResult(
+        True, "FPFH + RANSAC + point-to-plane ICP on the depth clouds (no gate)", T, "fpfh",
+        fitness=fit, seconds=time.perf_counter() - t0,
+    )  # fmt: skip
+
+
+#: the baselines of `fleetmap.align.methods.METHODS`, by name
+BASELINES = {
+    "rigid": _closed_form("rigid"),
+    "similarity": _closed_form("similarity"),
+    "affine": _closed_form("affine"),
+    "mlp": mlp_alone,
+    "icp": icp_from_identity,
+    "fpfh": recipe,
+}
 
 
 def fpfh_ransac_icp(views_a, views_b, voxel: float = 0.05, seed: int = 0):

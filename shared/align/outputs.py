@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fleetmap.align.baselines import run_method
-from fleetmap.align.types import AlignParams, AlignResult, unique_views
+from fleetmap.align.types import AlignResult, unique_views
 from fleetmap.mapcloud import ROBOT_COLOURS, views_cloud
 
 
@@ -23,17 +22,3 @@ def merged_cloud(
             [np.tile(ROBOT_COLOURS[0], (len(pa), 1)), np.tile(ROBOT_COLOURS[1], (len(pb), 1))]
         )
     return np.concatenate([pa, pb]), cols
-
-
-def align_request(
-    pairs, method: str, p: AlignParams, want_cloud: bool = False, colour: str = "robot"
-) -> tuple[dict, tuple[bytes, int] | None]:
-    """What the aligner service does for one request: result dict and optional PLY."""
-    from fleetmap.mapcloud import ply_bytes
-
-    res = run_method(pairs, method, p)
-    cloud = None
-    if want_cloud and res.merged:
-        pts, cols = merged_cloud(pairs, res, colour, p.voxel_m)
-        cloud = (ply_bytes(pts, cols), len(pts))
-    return res.to_dict(), cloud

@@ -25,7 +25,7 @@ import numpy as np
 from fleetmap.align.hypotheses import choose, pair_hypotheses, probe_points, rigid_hypotheses
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
-from fleetmap.align.validation import better_nearby, holdout_residual, spread
+from fleetmap.align.validation import better_nearby, holdout_residual, spread_m
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
@@ -207,7 +207,7 @@ def _match_gate(
     """Why the inlier matches refuse the fit (count, spread, held-out residual), or ""."""
     if out.inliers < need_inliers:
         return f"{out.inliers} inlier correspondences (need {need_inliers})"
-    sp = spread(R.X[inl])
+    sp = spread_m(R.X[inl])
     if sp < need_spread:
         return f"inliers spread {sp:.2f} m (need {need_spread:.2f} at this depth)"
     out.holdout_m = holdout_residual(R.X[inl], R.Y[inl])

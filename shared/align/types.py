@@ -12,18 +12,6 @@ from fleetmap.geometry import apply
 if TYPE_CHECKING:
     from fleetmap.estimators import MLPEstimator
 
-# Every way to align two robots' maps: the gated default and the baselines beside it.
-# The CLI's choices, the aligner's request schema and the dispatcher all read this.
-METHODS: dict[str, str] = {
-    "default": "gated: RANSAC hypotheses, free-space judged ICP, held-out residual, MLP",
-    "rigid": "rigid fit in RANSAC on the visual correspondences (no gate)",
-    "similarity": "similarity fit in RANSAC on the visual correspondences (no gate)",
-    "affine": "affine fit in RANSAC on the visual correspondences (no gate)",
-    "mlp": "the thesis MLP on the visual correspondences (no gate)",
-    "icp": "point-to-plane ICP from identity on the depth clouds (no gate)",
-    "fpfh": "FPFH + RANSAC + ICP on the depth clouds, the map_merge_3d recipe (no gate)",
-}
-
 
 @dataclass(frozen=True)
 class AlignParams:

@@ -60,8 +60,9 @@ def holdout_residual(
     return float(np.median(kfold_residuals(X, Y, fit, folds, seed)))
 
 
-def spread(points: np.ndarray) -> float:
-    """Second-largest standard deviation of a point set: small for a line or a spot."""
+def spread_m(points: np.ndarray) -> float:
+    """Second-largest standard deviation (metres) of a point set: small for a line or a
+    spot."""
     if len(points) < 3:
         return 0.0
     w = np.linalg.eigvalsh(np.cov(points.T))

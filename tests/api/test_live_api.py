@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from fleetmap.align import DEFAULT_ALIGN, align_request
+from fleetmap.align import align_views
 from fleetmap.dataset import read_recording
 from fleetmap.extract import FrameExtractor, keyframe_indices
 from fleetmap.frame import encode
@@ -117,7 +117,7 @@ def test_the_merge_worker_places_the_pair_and_every_replica_serves_it(settings, 
             calls.append(len(pairs))
             views = {id(v): v.decoded() for pair in pairs for v in pair}  # each view once
             pairs = [(views[id(x)], views[id(y)]) for x, y in pairs]
-            return align_request(pairs, "default", DEFAULT_ALIGN)[0]
+            return align_views(pairs).to_dict()
 
         never_quiet = LiveParams(settle_s=3600)  # no last fit: one alignment exactly
         live = LiveMap(app.state.db, align, never_quiet)
