@@ -119,6 +119,7 @@ class FleetCorrection:
     robots: dict[str, RobotCorrection]
     solution: Solution
     keyframes: dict[str, list] = field(default_factory=dict)
+    skipped: str = ""  # why no graph was built, if none was
 
     def cloud(self, robot: str) -> MapCloud:
         """Robot's map cloud in the reference frame, each keyframe's points by its own
@@ -141,7 +142,7 @@ class FleetCorrection:
             "rejected": int((sol.weights < 0.5).sum()),
             "optimise_s": round(sol.seconds, 3),
             "applied": sorted(r for r, c in self.robots.items() if c.applied),
-        }
+        } | ({"skipped": self.skipped} if self.skipped else {})
 
 
 def fleet_closures(
@@ -187,7 +188,11 @@ def correct_fleet(
     camera-to-map pose and features with 3D points, map-cloud points); `closures`: the
     fleet's closures when already found (`fleet_closures`).
 
-    Without `closures`, the graph is first solved on the feature closures alone (no ICP):
+    Without `closures`: where no robot's path is long enough for the drift model
+    (`drift_bound`: yaw per metre and scale, as the odometry edges) to bend it by
+    `min_bend_m`, no correction could be applied and no graph is built (a desk seen from
+    one place: TUM fr1_rpy windows paid 8-36 s for closures that changed nothing). Else
+    the graph is first solved on the feature closures alone (no ICP):
     where no robot bends by half `min_bend_m` there, the fleet has shown no drift the
     refined graph could apply, and the rigid placement stands at a fraction of the cost
     (the depth refinement is 60-85% of the closures' time: docs/BENCHMARKS.md "Drift")."""
@@ -204,6 +209,12 @@ def correct_fleet(
 
     if closures is not None:
         return solve(closures)
+    if all(drift_bound(T, params.graph) < params.min_bend_m for T in poses.values()):
+        rigid = {
+            r: _robot(stamps[r], T, placed[r] @ T, placed[r], params) for r, T in poses.items()
+        }
+        why = f"no robot's path bends {params.min_bend_m:g} m under the drift model"
+        return FleetCorrection(rigid, Solution({}, np.zeros(0), 0.0), keyframes, why)
     from threadpoolctl import threadpool_limits
 
     found = fleet_closures(keyframes, edges, overlaps, params, refine=False)
