@@ -91,7 +91,7 @@ def floor(drifted: list[np.ndarray], truth: list[np.ndarray]) -> float:
 
 def recipe_transform(dir_ref: Path, dir_r: Path) -> np.ndarray:
     from fleetmap.align import fpfh_ransac_icp
-    from fleetmap.pairs import load_view
+    from fleetmap.fleet.view_choice import load_view
 
     views = []
     for d in (dir_ref, dir_r):

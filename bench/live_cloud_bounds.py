@@ -19,9 +19,9 @@ import numpy as np
 
 from fleetmap.dataset import read_recording
 from fleetmap.extract_pool import CLOUD_MAX_DEPTH_M, CLOUD_STRIDE
+from fleetmap.fleet.map_render import bounded_voxels, view_cloud
+from fleetmap.fleet.view_choice import load_view
 from fleetmap.mapcloud import view_points
-from fleetmap.pairs import load_view
-from fleetmap.place.live_view import bounded_voxels, view_cloud
 from fleetmap.view import StoredView, encode_view
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fr1_pair" / "alpha"

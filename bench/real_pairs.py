@@ -37,10 +37,10 @@ sys.path.insert(0, str(ROOT))
 
 from fleetmap.align import fpfh_ransac_icp  # noqa: E402
 from fleetmap.dataset import cut_recording, read_recording  # noqa: E402
+from fleetmap.fleet.view_choice import load_view  # noqa: E402
 from fleetmap.geometry import apply, transform_error  # noqa: E402
 from fleetmap.lazy import LazyModule  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
-from fleetmap.pairs import load_view  # noqa: E402
 
 o3d = LazyModule("open3d")
 

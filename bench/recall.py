@@ -36,10 +36,10 @@ from real_pairs import ROOT, _mean_disp, every_nth_views, random_frame  # noqa: 
 
 from fleetmap.align import fpfh_ransac_icp  # noqa: E402
 from fleetmap.dataset import cut_recording, read_recording  # noqa: E402
+from fleetmap.fleet.view_choice import load_view  # noqa: E402
 from fleetmap.geometry import apply  # noqa: E402
 from fleetmap.lazy import LazyModule  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
-from fleetmap.pairs import load_view  # noqa: E402
 
 o3d = LazyModule("open3d")
 DATA = ROOT.parent / "shared" / "data"

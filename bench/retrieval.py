@@ -110,8 +110,8 @@ class Synth:
 
 def evaluate(db: PlaceDB, cor, sun, gt) -> dict:
     """Cascade and brute force on the real queries; latency, recall, stage fractions."""
-    cor_id = db.store.robot_code("corridor")
-    a_id = db.store.robot_code("robot_a")
+    cor_id = db.robot_code("corridor")
+    a_id = db.robot_code("robot_a")
     queries = [
         (cor[q - 1], Filter(robots={cor_id}, max_stamp=q - 5.5), gt.get(q)) for q in range(41, 85)
     ] + [(f, Filter(robots={a_id}), None) for f in sun["robot_b"]]

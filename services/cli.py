@@ -9,7 +9,10 @@ import sys
 
 from fleetmap.align.methods import METHODS
 from fleetmap.errors import FleetmapError
+from fleetmap.fleet.types import DEFAULT_MERGE
 from fleetmap.services import commands
+
+KF = DEFAULT_MERGE.keyframes  # the CLI's defaults are the stages' (`fleetmap.fleet.types`)
 
 log = logging.getLogger("fleetmap")
 
@@ -26,23 +29,23 @@ def _add_keyframe_args(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--kf-translation",
         type=float,
-        default=0.05,
+        default=KF.min_translation_m,
         metavar="M",
-        help="new keyframe after moving this far (default 0.05 m)",
+        help="new keyframe after moving this far (default %(default)g m)",
     )
     g.add_argument(
         "--kf-rotation",
         type=float,
-        default=5.0,
+        default=KF.min_rotation_deg,
         metavar="DEG",
-        help="new keyframe after turning this much (default 5 deg)",
+        help="new keyframe after turning this much (default %(default)g deg)",
     )
     g.add_argument(
         "--kf-interval",
         type=float,
-        default=1.0,
+        default=KF.max_interval_s,
         metavar="S",
-        help="new keyframe after this long at the latest (default 1 s)",
+        help="new keyframe after this long at the latest (default %(default)g s)",
     )
 
 
@@ -52,6 +55,25 @@ def _add_bag_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--depth-topic", help="sensor_msgs/Image depth topic (16UC1 mm, 32FC1 m)")
     g.add_argument("--info-topic", help="sensor_msgs/CameraInfo topic")
     g.add_argument("--pose-topic", help="PoseStamped or Odometry: camera in the map frame")
+
+
+def _add_max_views(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--max-views",
+        type=int,
+        default=DEFAULT_MERGE.views.max_views,
+        help="views per robot sent to the aligner (default %(default)s)",
+    )
+
+
+def _add_voxel(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--voxel",
+        type=float,
+        default=DEFAULT_MERGE.voxel_m,
+        metavar="M",
+        help="merged map voxel size (default %(default)g m)",
+    )
 
 
 def _add_robot_args(p: argparse.ArgumentParser) -> None:
@@ -205,7 +227,7 @@ def _pair_commands(sub) -> None:
     _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", True, "aligner")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--method", default="default", choices=list(METHODS))
-    p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
+    _add_max_views(p)
     p.add_argument("--wait", type=float, default=120.0, help="seconds to wait for overlaps")
     _add_robot_args(p)
     p.set_defaults(func=commands.cmd_align)
@@ -218,19 +240,17 @@ def _merge_command(sub) -> None:
     _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", False, "place database")
     _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", False, "aligner")
     p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
-    p.add_argument("--max-views", type=int, default=12, help="views per robot sent to the aligner")
+    _add_max_views(p)
     p.add_argument("--pcd", action="store_true", help="also write merged.pcd (PCL's format)")
     p.add_argument(
         "--correct-drift",
         action=argparse.BooleanOptionalAction,
-        default=True,
+        default=DEFAULT_MERGE.correct_drift,
         help="one pose graph over every robot's keyframes corrects maps that bend (drift); "
         "on by default, --no-correct-drift keeps every map rigid and skips the loop-closure "
         "search (a few seconds)",
     )
-    p.add_argument(
-        "--voxel", type=float, default=0.03, metavar="M", help="merged map voxel size (0.03 m)"
-    )
+    _add_voxel(p)
     _add_robot_args(p)
     p.set_defaults(func=commands.cmd_merge)
 
@@ -275,9 +295,7 @@ def _live_commands(sub) -> None:
     )
     _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
     p.add_argument("-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR")
-    p.add_argument(
-        "--voxel", type=float, default=0.03, metavar="M", help="merged map voxel size (0.03 m)"
-    )
+    _add_voxel(p)
     p.set_defaults(func=live.cmd_map)
 
 

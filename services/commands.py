@@ -80,6 +80,19 @@ def _policy(args: argparse.Namespace):
     return KeyframePolicy(args.kf_translation, args.kf_rotation, args.kf_interval)
 
 
+def _merge_params(args: argparse.Namespace):
+    """`merge`'s flags as its stage parameters (`fleetmap.fleet.types.MergeParams`)."""
+    from fleetmap.fleet.types import MergeParams, ViewParams
+
+    return MergeParams(
+        keyframes=_policy(args),
+        views=ViewParams(max_views=args.max_views),
+        voxel_m=args.voxel,
+        pcd=args.pcd,
+        correct_drift=args.correct_drift,
+    )
+
+
 def cmd_extract(args: argparse.Namespace) -> int:
     """Write one encoded frame structure per keyframe of a robot folder."""
     from fleetmap.dataset import parse_robot_arg, read_recording
@@ -268,7 +281,7 @@ def cmd_align(args: argparse.Namespace) -> int:
 
     from fleetmap.client import AlignerClient, PlaceDBClient
     from fleetmap.extract import keyframe_indices
-    from fleetmap.pairs import overlaps_to_align, pair_views
+    from fleetmap.fleet.view_choice import overlaps_to_align, pair_views
 
     rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
     with PlaceDBClient(args.place_db, token=args.token) as db:
@@ -324,16 +337,12 @@ def cmd_merge(args: argparse.Namespace) -> int:
     report = run_merge(
         recs,
         out,
-        _policy(args),
+        _merge_params(args),
         args.vocab,
         args.place_db,
         args.aligner,
-        max_views=args.max_views,
-        voxel=args.voxel,
         quiet=args.quiet,
         token=args.token,
-        pcd=args.pcd,
-        correct_drift=args.correct_drift,
     )
     merged = [r for r in ids if r not in report["unmerged"]]
     print(

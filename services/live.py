@@ -9,9 +9,9 @@ import os
 import queue
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from fleetmap.errors import BadInput
@@ -121,19 +121,23 @@ def cmd_stream(args: argparse.Namespace) -> int:
 def cmd_map(args: argparse.Namespace) -> int:
     """Write the live map's files: what `fleetmap merge` writes."""
     from fleetmap.client import PlaceDBClient
+    from fleetmap.fleet.map_render import BASE_VOXEL_M
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out} exists and is not a folder")
     if args.voxel <= 0:
         raise BadInput(f"--voxel must be positive, got {args.voxel}")
+    t0, voxel = time.perf_counter(), max(args.voxel, BASE_VOXEL_M)
     with PlaceDBClient(args.place_db, token=args.token, timeout=600) as client:
         m = client.live_map()
-        cloud = client.map_file("cloud.ply", voxel=max(args.voxel, 0.02))
+        cloud = client.map_file("cloud.ply", voxel=voxel)
         picture = client.map_file("overview.png")
         tracks = client.map_trajectories()
         lines = json.loads(client.map_file("lines"))["overlaps"]
-    write_live_outputs(out, m, cloud, picture, tracks, args.place_db, lines)
+        overlaps = overlap_items(client, m)
+    files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel)
+    write_live_outputs(out, m, files, args.place_db, time.perf_counter() - t0)
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
         f"in {m['reference']}'s frame; results: {out / 'report.json'}, {out / 'merged.ply'}, "
@@ -144,58 +148,61 @@ def cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_live_outputs(
-    out: Path, m: dict, cloud: bytes, picture: bytes, tracks, source, lines=None
-) -> None:
+@dataclass
+class LiveFiles:
+    """What `fleetmap map` fetched besides `GET /map`: the cloud (PLY bytes, at `voxel_m`),
+    the overview (PNG bytes), the keyframe trajectories, the overlap lines (`GET
+    /map/lines`) and the overlap items of the map's robot pairs (`GET /overlaps`)."""
+
+    cloud: bytes
+    picture: bytes
+    tracks: dict
+    lines: list | None
+    overlaps: list[dict]
+    voxel_m: float
+
+
+def overlap_items(client, m: dict) -> list[dict]:
+    """The overlaps of every robot pair of the live map's overlap graph, items as in
+    report.json (`fleetmap.fleet.report.OVERLAP_KEYS`)."""
+    from fleetmap.fleet.report import OVERLAP_KEYS
+
+    return [
+        {k: o[k] for k in OVERLAP_KEYS}
+        for e in m["overlaps"]
+        for o in client.overlaps(e["robot_a"], e["robot_b"])
+    ]
+
+
+def write_live_outputs(out: Path, m: dict, files: LiveFiles, source: str, seconds: float) -> None:
     """report.json, merged.ply, overview.png, overlap_matrix.png, pose_graph.g2o,
     trajectories/ (keyframe poses: the live map holds keyframes only) and fleet.mcap."""
     from fleetmap import pictures
+    from fleetmap.fleet.merge_rules import merged_edges
+    from fleetmap.fleet.report import live_report
+    from fleetmap.fleet.types import pair_key, transform_from_json
     from fleetmap.services.foxglove import write_fleet_mcap
-    from fleetmap.services.outputs import (
-        REPORT_VERSION,
-        TRANSFORM_CONVENTION,
-        write_g2o,
-        write_tum,
-    )
+    from fleetmap.services.outputs import write_g2o, write_tum
 
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
-    (out / "merged.ply").write_bytes(cloud)
-    (out / "overview.png").write_bytes(picture)
-    for r, rows in tracks.items():
+    (out / "merged.ply").write_bytes(files.cloud)
+    (out / "overview.png").write_bytes(files.picture)
+    for r, rows in files.tracks.items():
         write_tum(out / "trajectories" / f"{r}.txt", rows, m["reference"])
-    placed = {r: np.array(T) for r, T in m["transforms"].items()}
-    fits = [p for p in m["pairs"] if p["status"] == "merged"]
-    edges = {
-        (p["robot_a"], p["robot_b"]): {"T_a_b": np.array(p["transform"]), "inliers": p["inliers"]}
-        for p in fits
-        if p["robot_a"] in placed and p["robot_b"] in placed
-    }
+    T_ref = {r: transform_from_json(T) for r, T in m["transforms"].items()}
+    edges = merged_edges({pair_key(p["robot_a"], p["robot_b"]): p for p in m["pairs"]}, set(T_ref))
     names = ([m["reference"]] if m["reference"] else []) + [
         r for r in m["robots"] if r != m["reference"]
     ]
-    write_g2o(out / "pose_graph.g2o", names, placed, edges)
-    overlaps = [
+    write_g2o(out / "pose_graph.g2o", names, T_ref, edges)
+    pairs = [
         {"robot_a": e["robot_a"], "robot_b": e["robot_b"]}
         for e in m["overlaps"]
         for _ in range(e["pairs"])
     ]
-    report = {
-        "schema_version": REPORT_VERSION,
-        "reference": m["reference"],
-        "transform_convention": TRANSFORM_CONVENTION,
-        "source": {"place_db": source.split(",")[0], "live_map_version": m["version"]},
-        "robots": {
-            f["robot"]: {k: f[k] for k in ("keyframes", "views", "state")} for f in m["fleet"]
-        },
-        "transforms": m["transforms"],
-        "unmerged": [u["robot"] for u in m["unmerged"]],
-        "unmerged_reasons": {u["robot"]: u["reason"] for u in m["unmerged"]},
-        "fits": m["pairs"],
-        "overlap_graph": m["overlaps"],
-        "pose_graph": {"edges": len(edges)},
-        "updated_at": m["updated_at"],
-    }
+    report = live_report(m, source.split(",")[0], files.overlaps, edges, files.voxel_m)
+    report["timing_s"] = {"total": round(seconds, 3)}
     if names:
-        pictures.overlap_matrix(out / "overlap_matrix.png", names, {"overlaps": overlaps})
+        pictures.overlap_matrix(out / "overlap_matrix.png", names, {"overlaps": pairs})
     (out / "report.json").write_text(json.dumps(report, indent=2))
-    write_fleet_mcap(out, report, lines)
+    write_fleet_mcap(out, report, files.lines)

@@ -2,15 +2,14 @@
 
 extract (every core) while the services start -> ingest (POST keyframes) -> overlaps
 (verified keyframe pairs of every robot pair) -> align (each overlapping pair's views to
-the aligner) -> place (`fleetmap.placement`: spanning tree, pose graph) -> write
-(`fleetmap.services.outputs`). A robot with no trustworthy link is listed as unmerged,
-never placed on a guess.
+the aligner) -> place (`fleetmap.fleet.placement.place_fleet`: spanning tree, pose graph)
+-> write (`fleetmap.services.outputs`; report.json: `fleetmap.fleet.report`). A robot with
+no trustworthy link is listed as unmerged, never placed on a guess.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import logging
 import time
@@ -22,24 +21,24 @@ import numpy as np
 from tqdm import tqdm
 
 from fleetmap.client import AlignerClient, PlaceDBClient
-from fleetmap.cycles import disagreeing
 from fleetmap.dataset import Recording
 from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
 from fleetmap.extract_pool import extract_keyframes
 from fleetmap.fleet.correct import correct_fleet
+from fleetmap.fleet.placement import place_fleet
+from fleetmap.fleet.report import OVERLAP_KEYS, merge_parameters, merge_report
+from fleetmap.fleet.types import DEFAULT_MERGE, Fit, MergeParams
+from fleetmap.fleet.view_choice import overlaps_to_align, pair_views
 from fleetmap.mapcloud import MapCloud
-from fleetmap.pairs import overlaps_to_align, pair_views
-from fleetmap.placement import optimise_poses, spanning_placement
 from fleetmap.services.embedded import check_reachable, start_services, warm_up
 from fleetmap.services.foxglove import write_fleet_mcap
-from fleetmap.services.outputs import build_report, write_maps, write_pictures
+from fleetmap.services.outputs import write_maps, write_pictures
 from fleetmap.vocabulary import load_vocabulary
 
 log = logging.getLogger(__name__)
 
 STAGES = ("extract", "ingest", "overlaps", "align", "outputs")  # report.json's timing_s
-OVERLAP_KEYS = ("robot_a", "stamp_a", "robot_b", "stamp_b", "inliers", "source")
 
 
 @contextlib.contextmanager
@@ -55,26 +54,24 @@ def timed(timing: dict, stage: str):
 def run_merge(
     recs: list[Recording],
     out: Path,
-    policy,
+    params: MergeParams = DEFAULT_MERGE,
     vocab_path=None,
     place_db: str | None = None,
     aligner: str | None = None,
-    max_views: int = 12,
-    voxel: float = 0.03,
     quiet: bool = False,
     token: str | None = None,
     workers: int | None = None,
-    pcd: bool = False,
-    correct_drift: bool = True,
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
     overview.png, overlap_matrix.png, fleet.mcap; the links are registered meanwhile.
-    `correct_drift`: the keyframe pose graph over the fleet (`fleetmap.fleet`) corrects
-    maps that bend (loop closures searched in every robot: slower)."""
+    `params.correct_drift` (on by default): the keyframe pose graph over the fleet
+    (`fleetmap.fleet`) corrects maps that bend; where no map can bend by its gate it costs
+    nothing (`fleetmap.fleet.correct.correct_fleet`)."""
     check_reachable(place_db, aligner, token)  # before any long work
     out.mkdir(parents=True, exist_ok=True)
     timing, t_all = dict.fromkeys(STAGES, 0.0), time.perf_counter()
-    kf_index = {r.robot_id: keyframe_indices(r, policy) for r in recs}
+    kf_index = {r.robot_id: keyframe_indices(r, params.keyframes) for r in recs}
+    voxel, max_views = params.voxel_m, params.views.max_views
     ids = [r.robot_id for r in recs]
     with contextlib.ExitStack() as stack:
         keyframes = extract_keyframes(recs, kf_index, vocab_path, workers)  # runs meanwhile
@@ -93,15 +90,16 @@ def run_merge(
             edges, fits, links = align_pairs(db, al, recs, kf_index, by_pair, max_views, quiet)
         warm = warm_up("matplotlib.pyplot", "mcap_protobuf.writer")  # imported while linking
         with timed(timing, "outputs"):
-            placed, chain, optimised, edges = place_fleet(ids, edges)
+            placement, edges = placed_fleet(ids, edges)
+        placed, drift = placement.T_ref, params.correct_drift
         with timed(timing, "fleet_graph"):
-            fleet = correct_fleet(parts, placed, edges, overlaps, ids[0]) if correct_drift else None
+            fleet = correct_fleet(parts, placed, edges, overlaps, ids[0]) if drift else None
         with timed(timing, "outputs"):
-            drawing = write_maps(out, recs, kf_index, clouds, placed, edges, voxel, pcd, fleet)
+            drawing = write_maps(out, recs, kf_index, clouds, placed, edges, params, fleet)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
-    params = parameters(policy, vocab_path, max_views, voxel, pcd, correct_drift)
-    report = build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params)
+    in_force = merge_parameters(params, vocab_path)
+    report = merge_report(recs, kf_index, placement, overlaps, fits, edges, in_force)
     if fleet is not None:
         add_fleet_report(report, fleet)
     with timed(timing, "outputs"):
@@ -134,26 +132,12 @@ def voxelising(clouds: dict[str, MapCloud], voxel: float) -> dict[str, _Voxelise
     return out
 
 
-def parameters(policy, vocab_path, max_views, voxel, pcd, correct_drift) -> dict:
-    """report.json's "parameters": what the job ran with."""
-    return {
-        "keyframes": dataclasses.asdict(policy) if dataclasses.is_dataclass(policy) else None,
-        "vocabulary": str(vocab_path) if vocab_path else "default",
-    } | {"max_views": max_views, "voxel_m": voxel, "pcd": pcd, "correct_drift": correct_drift}
-
-
-def place_fleet(ids: list[str], edges: dict) -> tuple:
-    """(T_ref_robot, chains, optimised, edges used): the strongest chain of fits, no robot
-    placed through a cycle whose fits disagree (`fleetmap.cycles`), the pose graph."""
-    placed, chain = spanning_placement(ids, edges)
-    bad = disagreeing(placed, chain, edges)
-    for robot, why in bad.items():
+def placed_fleet(ids: list[str], edges: dict) -> tuple:
+    """`place_fleet` in the first robot's frame, each robot it could not place logged."""
+    placement, used = place_fleet(ids, edges)
+    for robot, why in placement.flagged.items():
         log.warning("%s not placed: %s", robot, why)
-    if bad:
-        edges = {k: e for k, e in edges.items() if not set(k) & set(bad)}
-        placed, chain = spanning_placement(ids, edges)
-    placed, optimised = optimise_poses(placed, edges, ids[0], chain)
-    return placed, chain, optimised, edges
+    return placement, used
 
 
 def add_fleet_report(report: dict, fleet) -> None:
@@ -229,15 +213,14 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
     Returns (edges, fits, links: fit index -> future of the link overlaps recorded)."""
     recs_by_id = {r.robot_id: r for r in recs}
 
-    def one(item):
+    def one(item) -> Fit | None:
         (a, b), pairs = item
         views = pair_views(pairs, recs_by_id[a], recs_by_id[b], kf_index[a], kf_index[b], max_views)
         if not views:
             return None
-        res = al.align(views)
-        n_a, n_b = len({id(v) for v, _ in views}), len({id(v) for _, v in views})
-        fit = {"robot_a": a, "robot_b": b, "views": [n_a, n_b]}
-        return fit | {k: v for k, v in res.items() if k != "hypotheses"}
+        fit = Fit.from_json(al.align(views), a, b)
+        fit.views = [len({id(v) for v, _ in views}), len({id(v) for _, v in views})]
+        return fit
 
     edges, fits, links = {}, [], {}
     linker = ThreadPoolExecutor(1)
@@ -250,20 +233,20 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
             if fit is None:
                 continue
             fits.append(fit)
-            if fit["merged"]:
-                a, b = fit["robot_a"], fit["robot_b"]
-                edges[(a, b)] = {"T_a_b": np.array(fit["transform"]), "inliers": fit["inliers"]}
+            if fit.merged:
+                a, b = fit.robot_a, fit.robot_b
+                edges[(a, b)] = fit.edge()
                 # the place database records the keyframe pairs co-visible under it
-                links[len(fits) - 1] = linker.submit(db.put_link, a, b, fit["transform"])
+                links[len(fits) - 1] = linker.submit(db.put_link, a, b, fit.T_a_b)
     linker.shutdown(wait=False)  # the submitted links still run
     return edges, fits, links
 
 
-def link_overlaps(db: PlaceDBClient, edges: dict, fits: list, links: dict) -> list[dict]:
+def link_overlaps(db: PlaceDBClient, edges: dict, fits: list[Fit], links: dict) -> list[dict]:
     """Wait for the links registered in the background; the co-visible keyframe pairs they
     gave (the report's "link" overlaps). Each fit gets its count."""
     for k, future in links.items():
-        fits[k]["link_overlaps"] = future.result()
+        fits[k].link_overlaps = future.result()
     return [
         {k: p[k] for k in OVERLAP_KEYS} for a, b in edges for p in db.overlaps(a, b, source="link")
     ]

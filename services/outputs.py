@@ -1,6 +1,6 @@
 """What `fleetmap merge` (and `fleetmap map`) write: merged.ply (and .pcd), every frame's
-trajectory in the reference frame (TUM), the robots' pose graph (g2o), report.json, and
-the pictures (overview.png, overlap_matrix.png)."""
+trajectory in the reference frame (TUM), the robots' pose graph (g2o) and the pictures
+(overview.png, overlap_matrix.png); report.json's content is `fleetmap.fleet.report`'s."""
 
 from __future__ import annotations
 
@@ -11,15 +11,9 @@ import numpy as np
 
 from fleetmap import pictures
 from fleetmap.dataset import Recording
+from fleetmap.fleet.types import MergeParams
 from fleetmap.geometry import apply, pose_to_tum
 from fleetmap.mapcloud import ROBOT_COLOURS, write_pcd, write_ply
-
-#: report.json layout version (2: schema_version, transform_convention, parameters).
-REPORT_VERSION = 2
-TRANSFORM_CONVENTION = (
-    "transforms[R] is T_ref_R: it maps points of robot R's map frame into the "
-    "reference robot's map frame (row-major 4x4, metres)"
-)
 
 
 @dataclasses.dataclass
@@ -35,10 +29,11 @@ class Drawing:
 
 
 def write_maps(
-    out: Path, recs, kf_index, clouds, placed, edges, voxel=0.03, pcd=False, fleet=None
+    out: Path, recs, kf_index, clouds, placed, edges, params: MergeParams, fleet=None
 ) -> Drawing:
-    """merged.ply (image colour, per-point robot index), trajectories of every frame and
-    pose_graph.g2o; returns what the pictures need. With `fleet`
+    """merged.ply (image colour, per-point robot index; `params.voxel_m`, and merged.pcd with
+    `params.pcd`), trajectories of every frame and pose_graph.g2o; returns what the pictures
+    need. `placed`: T_ref_r per placed robot; `edges`: the fits placed on. With `fleet`
     (`fleetmap.fleet.correct.FleetCorrection`), a drift-corrected robot's cloud and poses
     are its corrected ones and pose_graph.g2o is the keyframe graph."""
     (out / "trajectories").mkdir(exist_ok=True)
@@ -48,11 +43,11 @@ def write_maps(
         rid = rec.robot_id
         if rid not in placed:
             continue
-        T = placed[rid] if fleet is None else fleet.rigid(rid, placed[rid])
-        pose = _frame_poses(rid, T, fleet)
+        T_ref_r = placed[rid] if fleet is None else fleet.rigid(rid, placed[rid])
+        pose = _frame_poses(rid, T_ref_r, fleet)
         corrected = fleet is not None and rid in fleet.robots and fleet.robots[rid].applied
-        p, c = (fleet.cloud(rid) if corrected else clouds[rid]).voxelised(voxel)
-        d.points.append(p if corrected else apply(T, p))
+        p, c = (fleet.cloud(rid) if corrected else clouds[rid]).voxelised(params.voxel_m)
+        d.points.append(p if corrected else apply(T_ref_r, p))
         cols.append(c)
         robot_idx.append(np.full(len(p), k, np.uint16))
         d.names.append(rid)
@@ -66,7 +61,7 @@ def write_maps(
     if d.points:
         pts, col, idx = np.concatenate(d.points), np.concatenate(cols), np.concatenate(robot_idx)
         write_ply(out / "merged.ply", pts, col, robot=idx)
-        if pcd:
+        if params.pcd:
             write_pcd(out / "merged.pcd", pts, col, idx)
     if fleet is not None and any(c.applied for c in fleet.robots.values()):
         fleet.solution.write_g2o(out / "pose_graph.g2o")  # the keyframe graph
@@ -142,28 +137,3 @@ def _g2o_information(info: np.ndarray) -> np.ndarray:
 
 def _g2o_pose(T: np.ndarray) -> str:
     return " ".join(f"{x:.9f}" for x in pose_to_tum(T))
-
-
-def build_report(recs, kf_index, placed, chain, overlaps, fits, edges, optimised, params) -> dict:
-    """report.json's content (CONTRACT section 2) but its timings."""
-    ids = [r.robot_id for r in recs]
-    return {
-        "schema_version": REPORT_VERSION,
-        "reference": ids[0],
-        "transform_convention": TRANSFORM_CONVENTION,
-        "robots": {
-            r.robot_id: {
-                "keyframes": len(kf_index[r.robot_id]),
-                "frames": len(r),
-                "source": str(r.root),
-                "chain": chain.get(r.robot_id),
-            }
-            for r in recs
-        },
-        "transforms": {r: placed[r].tolist() for r in ids if r in placed},
-        "overlaps": overlaps,
-        "fits": fits,
-        "unmerged": [r for r in ids if r not in placed],
-        "pose_graph": {"edges": len(edges), "optimised": optimised},
-        "parameters": params,
-    }

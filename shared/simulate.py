@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fleetmap.camera import Intrinsics
-from fleetmap.geometry import pose_to_tum
+from fleetmap.geometry import invert, pose_to_tum
 
 
 def texture(rng: np.random.Generator, size: int = 256, shapes: int = 60) -> np.ndarray:
@@ -196,6 +196,6 @@ def simulate_fleet(
             "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows_gt) + "\n"
         )
         (root / "camera.json").write_text(json.dumps(intr.to_dict()))
-    truth = {name: (maps[0] @ np.linalg.inv(maps[k])).tolist() for k, name in enumerate(names)}
+    truth = {name: (maps[0] @ invert(maps[k])).tolist() for k, name in enumerate(names)}
     (out / "T_true.json").write_text(json.dumps(truth, indent=1))
     return truth

@@ -8,10 +8,10 @@ from pathlib import Path
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from fleetmap.fleet.merge_worker import LiveParams
 from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
-from fleetmap.place.live import LiveParams
 from fleetmap.place.store import DB_FILE, PG_TIMEOUT_S, POSTGRES_SCHEMES
 from fleetmap.services.serving import HEADER_TIMEOUT_S
 from fleetmap.services.settings import refuse_flat_names, secrets_dir

@@ -8,9 +8,9 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from fleetmap.fleet.map_render import MapRenderer
+from fleetmap.fleet.map_scene import SceneCache
 from fleetmap.place import PlaceDB
-from fleetmap.place.live_view import MapRenderer
-from fleetmap.place.scene3d import SceneCache
 from fleetmap.services.place_db.config import Settings
 
 

@@ -10,8 +10,9 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from fastapi.responses import HTMLResponse
 from starlette.concurrency import run_in_threadpool
 
+from fleetmap.fleet.map_document import map_document
+from fleetmap.fleet.map_render import BASE_VOXEL_M
 from fleetmap.mapcloud import ply_bytes
-from fleetmap.place.live_view import BASE_VOXEL_M, map_document
 from fleetmap.services.auth import require_operator
 from fleetmap.services.http_errors import ERROR_RESPONSES
 from fleetmap.services.place_db import schemas as s

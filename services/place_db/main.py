@@ -8,10 +8,10 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from fleetmap.fleet.map_render import MapRenderer
+from fleetmap.fleet.map_scene import SceneCache
+from fleetmap.fleet.merge_worker import LiveMap
 from fleetmap.place import PlaceDB, RetrainPolicy
-from fleetmap.place.live import LiveMap
-from fleetmap.place.live_view import MapRenderer
-from fleetmap.place.scene3d import SceneCache
 from fleetmap.place.store import open_store
 from fleetmap.services.auth import auth_summary
 from fleetmap.services.docs import install_docs

@@ -10,9 +10,10 @@ from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
 from fleetmap.errors import UnknownRobot
+from fleetmap.fleet.map_document import map_document
+from fleetmap.fleet.map_render import BASE_VOXEL_M
+from fleetmap.fleet.map_scene import DEFAULT_VOXEL_M, overlap_lines
 from fleetmap.mapcloud import ROBOT_COLOURS
-from fleetmap.place.live_view import BASE_VOXEL_M, map_document
-from fleetmap.place.scene3d import DEFAULT_VOXEL_M, overlap_lines
 from fleetmap.services.auth import require_operator
 from fleetmap.services.http_errors import ERROR_RESPONSES
 from fleetmap.services.place_db.deps import Database, Renderer, Scene
@@ -42,10 +43,9 @@ def robot_cloud(
     """One robot's map cloud in ITS OWN map frame (apply `transforms[robot]` of `GET /map`),
     voxelised and capped at 100 000 points: N float32 x y z, then N uint8 r g b (image
     colour); `x-points: N`. Cached until the robot gains views."""
-    code = db.store.robot_code(robot)
-    if code is None:
+    if db.robot_code(robot) is None:
         raise UnknownRobot(f"Unknown robot {robot!r}")
-    body = scene.robot_cloud(robot, len(db.store.view_ids(code)), voxel)
+    body = scene.robot_cloud(robot, len(db.view_ids(robot)), voxel)
     headers = {"x-points": str(len(body) // 15), "cache-control": "no-store"}
     return Response(body, media_type="application/octet-stream", headers=headers)
 

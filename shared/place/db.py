@@ -19,8 +19,9 @@ import numpy as np
 
 from fleetmap.errors import BadInput, UnknownKeyframe, UnknownRobot
 from fleetmap.frame import Frame, check_robot_id, decode
-from fleetmap.geometry import check_transform
+from fleetmap.geometry import check_transform, invert
 from fleetmap.place.cascade import run_cascade
+from fleetmap.place.fleet_access import FleetAccess
 from fleetmap.place.index import PlaceIndex
 from fleetmap.place.links import LinkOverlaps, pair_link_rows
 from fleetmap.place.replica import ClaimWorker, Follower
@@ -41,8 +42,9 @@ from fleetmap.vocabulary import Vocabulary
 log = logging.getLogger(__name__)
 
 
-class PlaceDB:
-    """Keyframes of a fleet, their place index and the overlaps found between robots.
+class PlaceDB(FleetAccess):
+    """Keyframes of a fleet, their place index and the overlaps found between robots; what
+    the fleet level reads and keeps here is `FleetAccess`'s.
 
     `store` is where the data lives, as `open_store` takes it (a SQLite file or folder, the
     embedded default, or a postgresql:// URL: replicas over one database), or a `Store`."""
@@ -306,7 +308,7 @@ class PlaceDB:
             raise BadInput("A link joins two different robots")
         ra, rb = self._code(robot_a), self._code(robot_b)
         if ra > rb:  # one row per robot pair
-            ra, rb, T = rb, ra, np.linalg.inv(T)
+            ra, rb, T = rb, ra, invert(T)
         rows = pair_link_rows(self.store, self.load_frame, ra, rb, T)
         n = self.store.put_link(ra, rb, T, rows)
         log.info("link %s-%s registered: %d co-visible keyframe pairs", robot_a, robot_b, n)

@@ -12,6 +12,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fleetmap.frame import Frame
+from fleetmap.geometry import invert
 from fleetmap.place.cascade import CovisTarget, covis_source, covis_target, covisibility_many
 from fleetmap.place.store import LinkRow, Store
 
@@ -103,9 +104,7 @@ def pair_link_rows(store: Store, load, ra: int, rb: int, T_a_b: np.ndarray) -> l
     fa = [(i, load(i)) for i in store.robot_keyframe_ids(ra)]
     fb = [(i, load(i)) for i in store.robot_keyframe_ids(rb)]
     cache = CovisCache()
-    return link_rows(fb, rb, fa, ra, T_a_b, cache) + link_rows(
-        fa, ra, fb, rb, np.linalg.inv(T_a_b), cache
-    )
+    return link_rows(fb, rb, fa, ra, T_a_b, cache) + link_rows(fa, ra, fb, rb, invert(T_a_b), cache)
 
 
 class LinkOverlaps:
@@ -122,7 +121,7 @@ class LinkOverlaps:
     def for_keyframe(self, kf_id: int, frame: Frame, code: int) -> list[LinkRow]:
         rows: list[LinkRow] = []
         for a, b, T_a_b, _ in self.store.links(code):
-            other, T_other_this = (a, T_a_b) if b == code else (b, np.linalg.inv(T_a_b))
+            other, T_other_this = (a, T_a_b) if b == code else (b, invert(T_a_b))
             ids = self.store.robot_keyframe_ids(other)
             for i in ids:
                 if i not in self._centres:

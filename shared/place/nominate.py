@@ -59,8 +59,9 @@ def nominated_overlaps(db, robot_a: str, robot_b: str, k: int = NOMINATED) -> li
     (no inliers: nothing was verified)."""
     from fleetmap.place.types import Overlap
 
-    codes = db._code(robot_a), db._code(robot_b)
-    ids_a, ids_b = (db.store.robot_keyframe_ids(c) for c in codes)
+    for r in (robot_a, robot_b):
+        db._code(r)  # UnknownRobot for a robot deleted meanwhile
+    ids_a, ids_b = db.keyframe_ids(robot_a), db.keyframe_ids(robot_b)
     frames: dict = {}
 
     def load(kf: int):

@@ -246,7 +246,7 @@ def delete_robot(con, code: int, name: str | None = None) -> np.ndarray:
 def _forget_live(con, name: str) -> None:
     """In the delete's transaction: the live map's rows without what robot `name` gave
     (rows locked, so a compare-and-set of another replica waits and then fails)."""
-    from fleetmap.place.live_state import forget_robot
+    from fleetmap.fleet.state import forget_robot
 
     sql = "SELECT key, value FROM live WHERE key IN ('pairs', 'map') FOR UPDATE"
     rows = dict(con.execute(sql).fetchall())

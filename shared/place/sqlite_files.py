@@ -218,8 +218,8 @@ class Transaction:
 
 def forget_live(db: sqlite3.Connection, name: str) -> None:
     """In the caller's transaction: the live map's rows without what robot `name` gave
-    (`fleetmap.place.live_state.forget_robot`)."""
-    from fleetmap.place.live_state import forget_robot
+    (`fleetmap.fleet.state.forget_robot`)."""
+    from fleetmap.fleet.state import forget_robot
 
     rows = dict(db.execute("SELECT key, value FROM live WHERE key IN ('pairs', 'map')"))
     new = forget_robot(rows.get("pairs"), rows.get("map"), name)

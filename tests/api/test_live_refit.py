@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from fleetmap.dataset import read_recording
-from fleetmap.pairs import load_view
-from fleetmap.place.live_rules import new_merge, refit_or_kept
+from fleetmap.fleet.merge_rules import new_merge, refit_or_kept
+from fleetmap.fleet.view_choice import load_view
 
 PAIR = Path(__file__).resolve().parents[2] / "examples" / "fr1_pair"
 

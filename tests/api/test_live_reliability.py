@@ -11,10 +11,10 @@ from fastapi.testclient import TestClient
 
 from fleetmap.dataset import read_recording
 from fleetmap.extract import FrameExtractor, keyframe_indices
+from fleetmap.fleet.merge_worker import LiveMap, LiveParams
+from fleetmap.fleet.view_choice import load_view
 from fleetmap.frame import decode, encode
 from fleetmap.geometry import transform_error
-from fleetmap.pairs import load_view
-from fleetmap.place.live import LiveMap, LiveParams
 from fleetmap.services.place_db.config import Settings
 from fleetmap.services.place_db.main import create_app
 from fleetmap.view import encode_view

@@ -15,8 +15,8 @@ from PIL import Image
 from fleetmap.client import align_request
 from fleetmap.dataset import read_recording
 from fleetmap.extract import FrameExtractor
+from fleetmap.fleet.view_choice import load_view
 from fleetmap.frame import encode
-from fleetmap.pairs import load_view
 from fleetmap.services.aligner.config import Settings as AlignerSettings
 from fleetmap.services.aligner.main import create_app as aligner_app
 from fleetmap.services.place_db.config import Settings

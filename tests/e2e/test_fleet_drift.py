@@ -18,9 +18,9 @@ from fleetmap.extract import keyframe_indices
 from fleetmap.fleet.closures import Closure
 from fleetmap.fleet.correct import correct_fleet, fleet_closures
 from fleetmap.fleet.drift import write_drifted
+from fleetmap.fleet.view_choice import frame_at, load_view, pair_views
 from fleetmap.geometry import apply, displacement_rms, invert
 from fleetmap.mapcloud import ViewsCloud
-from fleetmap.pairs import frame_at, load_view, pair_views
 from fleetmap.registration import kabsch
 from fleetmap.services.cli import main
 

@@ -121,9 +121,9 @@ def _mean_map_error(robot_dir: Path, T: np.ndarray, T_true: np.ndarray) -> float
     """Mean displacement (metres) of a robot's map points (every 5th frame) under T
     against the truth: what a merged map shows."""
     from fleetmap.dataset import read_recording
+    from fleetmap.fleet.view_choice import load_view
     from fleetmap.geometry import apply
     from fleetmap.mapcloud import views_cloud
-    from fleetmap.pairs import load_view
 
     rec = read_recording(robot_dir)
     pts = np.asarray(

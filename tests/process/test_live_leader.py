@@ -9,8 +9,8 @@ import threading
 
 import pytest
 
-from fleetmap.place.live import LiveMap
-from fleetmap.place.live_state import load_states, update_states
+from fleetmap.fleet.merge_worker import LiveMap
+from fleetmap.fleet.state import load_states, update_states
 from fleetmap.place.postgres import PostgresStore
 from fleetmap.place.sqlite import SQLiteStore
 from tests import pg

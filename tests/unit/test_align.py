@@ -49,8 +49,8 @@ def test_surface_rmse_prefers_the_truth_to_a_slide(hololens):
     """The refinement choice measures on depth alone: on real HoloLens maps, the true
     alignment's surfaces sit closer than the same alignment slid 3 cm along any axis."""
     from fleetmap.align import surface_rmse
+    from fleetmap.fleet.view_choice import load_view
     from fleetmap.mapcloud import views_cloud
-    from fleetmap.pairs import load_view
 
     clouds = []
     for name in ("hl_a", "hl_b"):

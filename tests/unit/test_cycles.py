@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fleetmap.cycles import CycleParams, disagreeing
-from fleetmap.placement import spanning_placement
+from fleetmap.fleet.cycles import CycleParams, disagreeing
+from fleetmap.fleet.placement import spanning_placement
 from tests.conftest import random_frame
 
 

@@ -11,13 +11,13 @@ import numpy as np
 
 from fleetmap.dataset import read_recording
 from fleetmap.extract_pool import CLOUD_STRIDE
-from fleetmap.pairs import load_view
-from fleetmap.place.live_view import (
+from fleetmap.fleet.map_render import (
     CLOUD_VIEW_PIXELS,
     MAX_ROBOT_POINTS,
     bounded_voxels,
     view_cloud,
 )
+from fleetmap.fleet.view_choice import load_view
 from fleetmap.view import StoredView, encode_view
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "fr1_pair"

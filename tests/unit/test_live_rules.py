@@ -4,8 +4,8 @@ won by arriving first."""
 
 from __future__ import annotations
 
-from fleetmap.place.live import LiveParams
-from fleetmap.place.live_rules import backoff_s, due_order, is_due, reference
+from fleetmap.fleet.merge_rules import backoff_s, due_order, is_due, reference
+from fleetmap.fleet.merge_worker import LiveParams
 
 P = LiveParams()
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from fleetmap.placement import spanning_placement
+from fleetmap.fleet.placement import spanning_placement
 
 
 def test_spanning_placement_chains_strongest_links_and_leaves_isolated_robots():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fleetmap.place.scene3d import MAX_POINTS, cloud_bytes, thinned
+from fleetmap.fleet.map_scene import MAX_POINTS, cloud_bytes, thinned
 
 
 def test_cloud_bytes_are_float32_xyz_then_rgb():

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.geometry import transform_error
+from fleetmap.geometry import invert, transform_error
 
 
 @dataclass(frozen=True)
@@ -35,14 +35,14 @@ def disagreeing(
 ) -> dict[str, str]:
     """{robot: reason} of robots whose placement rests on a cycle whose fits disagree.
 
-    placed, chain: `fleetmap.placement.spanning_placement`'s T_ref_robot and the robots
+    placed, chain: `fleetmap.fleet.placement.spanning_placement`'s T_ref_r and the robots
     each placement went through; edges[(a, b)]: {"T_a_b": 4x4, ...}."""
     tree = {frozenset(c[-2:]) for c in chain.values() if len(c) >= 2}
     out: dict[str, str] = {}
     for (a, b), e in edges.items():
         if a not in placed or b not in placed or frozenset((a, b)) in tree:
             continue
-        dt, dr = transform_error(np.linalg.inv(placed[a]) @ placed[b], e["T_a_b"])
+        dt, dr = transform_error(invert(placed[a]) @ placed[b], e["T_a_b"])
         if dt <= params.max_translation_m and dr <= params.max_rotation_deg:
             continue
         root = _common_root(chain[a], chain[b])

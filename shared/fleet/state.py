@@ -1,7 +1,8 @@
-"""The live map's stored state (the store's `live` rows), read and changed safely.
+"""The fleet's stored state (the store's `live` rows), read and changed safely: through a
+`PlaceDB` (`fleetmap.place.fleet_access`) or, inside the place database, its `Store`.
 
-Two rows matter: "pairs" (the merge worker's pair states, JSON keyed "A|B") and "map" (the
-placement). Every change of the pair states is a compare-and-set (`update_states`): a
+Two rows matter: "pairs" (the merge worker's `PairState`s, JSON keyed "A|B") and "map" (the
+`Placement`). Every change of the pair states is a compare-and-set (`update_states`): a
 replica that lost its lock, or a state computed before a robot was deleted, cannot write
 over a newer one. Deleting a robot forgets what was derived from it in the store's delete
 transaction (`forget_robot`), so a robot id that comes back starts fresh.
@@ -14,21 +15,36 @@ import random
 import time
 from collections.abc import Callable
 
+from fleetmap.fleet.types import PairState, Placement
+
 CAS_TRIES = 100
 
 
-def pair_key(a: str, b: str) -> str:
-    return "|".join(sorted((a, b)))
-
-
-def load_states(store) -> dict:
+def load_states(store) -> dict[str, PairState]:
+    """The pair states by `pair_key` (`store`: a `PlaceDB` or a `Store`)."""
     raw = store.live_get("pairs")
     return {} if raw is None else json.loads(raw)
 
 
-def read_placement(store) -> dict:
+def read_placement(store) -> Placement:
+    """The stored placement (an empty one before the first)."""
     raw = store.live_get("map")
-    return {} if raw is None else json.loads(raw)
+    return Placement.from_json({} if raw is None else json.loads(raw))
+
+
+def write_placement(store, placement: Placement) -> None:
+    store.live_put("map", json.dumps(placement.to_json()))
+
+
+def read_worker(store) -> dict | None:
+    """The merge worker's last word: the pairs it is aligning and how many more wait; None
+    before it first ran (or without a worker)."""
+    raw = store.live_get("worker")
+    return None if raw is None else json.loads(raw)
+
+
+def write_worker(store, work: dict) -> None:
+    store.live_put("worker", json.dumps(work))
 
 
 def update_states(store, change: Callable[[dict], None]) -> dict:
@@ -52,20 +68,17 @@ def forget_robot(pairs_raw: str | None, map_raw: str | None, name: str) -> tuple
     states = {} if pairs_raw is None else json.loads(pairs_raw)
     kept = {k: s for k, s in states.items() if name not in (s["robot_a"], s["robot_b"])}
     new_pairs = json.dumps(kept) if len(kept) != len(states) else None
-    m = {} if map_raw is None else json.loads(map_raw)
-    placed = m.get("transforms", {})
-    ref = m.get("reference")
-    flagged = m.get("flagged", {})
-    if name not in placed and ref != name and name not in flagged:
+    m = Placement.from_json({} if map_raw is None else json.loads(map_raw))
+    if name not in m.T_ref and m.reference != name and name not in m.flagged:
         return new_pairs, None
-    m["flagged"] = {r: why for r, why in flagged.items() if r != name}
-    reach = _reachable(ref, kept) if ref != name else set()
-    m["transforms"] = {r: T for r, T in placed.items() if r in reach}
-    m["edges"] = [e for e in m.get("edges", []) if e[0] in reach and e[1] in reach]
-    if not m["transforms"]:
-        m["reference"] = None
-    m |= {"version": m.get("version", 0) + 1, "updated_at": time.time()}
-    return new_pairs, json.dumps(m)
+    m.flagged = {r: why for r, why in m.flagged.items() if r != name}
+    reach = _reachable(m.reference, kept) if m.reference != name else set()
+    m.T_ref = {r: T for r, T in m.T_ref.items() if r in reach}
+    m.links = [e for e in m.links if e[0] in reach and e[1] in reach]
+    if not m.T_ref:
+        m.reference = None
+    m.version, m.updated_at = m.version + 1, time.time()
+    return new_pairs, json.dumps(m.to_json())
 
 
 def _reachable(ref: str | None, states: dict) -> set[str]:
@@ -80,11 +93,3 @@ def _reachable(ref: str | None, states: dict) -> set[str]:
                     seen.add(other)
                     todo.append(other)
     return seen
-
-
-def incarnation(store, name: str) -> int | None:
-    """Which life of robot `name` this is: its first keyframe id (ids are never reused,
-    so a robot deleted and posted again has another); None for an unknown robot."""
-    code = store.robot_code(name)
-    ids = [] if code is None else store.robot_keyframe_ids(code)
-    return min(ids) if ids else None

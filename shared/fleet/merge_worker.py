@@ -1,4 +1,6 @@
-"""The live fleet map: the place database aligns robots itself as overlaps appear.
+"""The live merge worker: the place database aligns robots itself as overlaps appear. Where
+the live worker decides what to align (`LiveMap.due_pairs`, the rules in
+`fleetmap.fleet.merge_rules`) and places the fleet (`LiveMap.place`).
 
 A merge worker (one thread; on PostgreSQL one replica at a time, under an advisory lock)
 looks at the verified overlaps of every robot pair once a second. A pair is aligned when it
@@ -7,20 +9,16 @@ has new evidence: first overlaps, more overlaps after the gate refused it, or ma
 overlap is aligned once from the place database's nominated keyframe pairs (the BoW-nearest,
 `fleetmap.place.nominate`), again only after either robot gained keyframes. The views sent
 are the stored RGB-D views near its verified keyframes, chosen as `fleetmap merge` chooses
-them (`fleetmap.pairs.spread`), so a live map is as accurate as a batch merge of the same
-keyframes. A gated result becomes a link (`PlaceDB.add_link`) and the fleet is placed again
-(`fleetmap.placement`: spanning tree, pose graph). Pair states and the placement are stored
-(`Store.live_put`), so a restart aligns nothing twice and serves the same map.
-
-Pair state, per "A|B" (names sorted): status merged | refused | no_views, evidence (the
-cascade overlaps it was aligned on), views, the transform (B's map into A's), inliers,
-the aligner's reason, attempts, at (unix time), nominated (the robots' keyframe counts when
-it was tried on nominated pairs).
+them (`fleetmap.fleet.view_choice.spread`), so a live map is as accurate as a batch merge of
+the same keyframes. A gated result becomes a link (`PlaceDB.add_link`) and the fleet is
+placed again (`fleetmap.fleet.placement.place_fleet`, as `fleetmap merge` does). Pair states
+(`fleetmap.fleet.types.PairState`) and the placement are stored (`fleetmap.fleet.state`),
+so a restart aligns nothing twice and serves the same map. The worker reads and writes the
+place database only through `PlaceDB` (`fleetmap.place.fleet_access`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -31,8 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
-from fleetmap.pairs import look_at, spread
-from fleetmap.place.live_rules import (
+from fleetmap.fleet.merge_rules import (
     copier_robots,
     due_order,
     evidence,
@@ -43,16 +40,26 @@ from fleetmap.place.live_rules import (
     reference,
     refit_or_kept,
     robot_order,
-    same_placement,
     whole_map_views,
 )
-from fleetmap.place.live_state import (
-    incarnation,
+from fleetmap.fleet.placement import place_fleet
+from fleetmap.fleet.state import (
     load_states,
-    pair_key,
     read_placement,
     update_states,
+    write_placement,
+    write_worker,
 )
+from fleetmap.fleet.types import (
+    DEFAULT_VIEWS,
+    Fit,
+    PairState,
+    Placement,
+    pair_key,
+    state_transform,
+    transform_to_json,
+)
+from fleetmap.fleet.view_choice import look_at, spread
 from fleetmap.place.nominate import nominated_overlaps
 from fleetmap.view import stored_view
 
@@ -64,7 +71,7 @@ class LiveParams:
     """When the merge worker aligns a robot pair."""
 
     poll_s: float = 1.0  # how often the overlaps are looked at
-    max_views: int = 12  # per robot and pair, as `fleetmap merge --max-views`
+    max_views: int = DEFAULT_VIEWS.max_views  # per robot and pair, as `fleetmap merge`
     first_views: int = 8  # a pair's first fit: 8x8 views, about half the time of 12x12
     retry_min_new: int = 1  # a refused pair: tried again after this many new overlaps
     retry_factor: float = 1.25  # ... and once its overlaps grew by this factor
@@ -114,7 +121,7 @@ class LiveMap:
         on SQLite; one replica at a time on PostgreSQL)."""
         while not self._stop.is_set():
             try:
-                with self.db.store.exclusive("live map") as held:
+                with self.db.exclusive("live map") as held:
                     self._lead(held)
             except Conflict:
                 pass  # another replica is merging
@@ -138,7 +145,7 @@ class LiveMap:
                     return
                 for key in [k for k, f in flying.items() if f.done()]:
                     self._finish(key, flying.pop(key))
-                states = load_states(self.db.store)
+                states = load_states(self.db)
                 due = [d for d in self.due_pairs(states) if pair_key(d[0], d[1]) not in flying]
                 for a, b, overlaps in self._next(due, flying):
                     log.info(
@@ -155,7 +162,7 @@ class LiveMap:
         """Due pairs for the free slots, in order. While a pair that places a new robot is
         aligning, a second pair for the same robot, or a refinement, waits: on two cores it
         would slow the one that grows the map."""
-        placed = set(read_placement(self.db.store).get("transforms", {}))
+        placed = set(read_placement(self.db).T_ref)
         busy = {r for k in flying for r in k.split("|") if r not in placed}
         out = []
         for a, b, overlaps in due:
@@ -176,7 +183,7 @@ class LiveMap:
             log.warning("live map: %s", exc)
             return
         if self._store_result(key, result):
-            self.place(load_states(self.db.store))
+            self.place(load_states(self.db))
             self._link(result)
 
     def _store_result(self, key: str, result: dict) -> bool:
@@ -185,23 +192,23 @@ class LiveMap:
         if not self._leading:
             return False
         a, b = result["robot_a"], result["robot_b"]
-        stale = [incarnation(self.db.store, r) for r in (a, b)] != result.get("since")
+        stale = [self.db.incarnation(r) for r in (a, b)] != result.get("since")
         if stale:
             log.info("live map: %s-%s changed while aligned; result dropped", a, b)
             return False
-        update_states(self.db.store, lambda states: states.__setitem__(key, result))
+        update_states(self.db, lambda states: states.__setitem__(key, result))
         return True
 
-    def _link(self, st: dict) -> None:
+    def _link(self, st: PairState) -> None:
         """Register a new merge as a link (its co-visible keyframe pairs become overlaps),
         in the background: placing the robot does not wait for it (12 s for 280 keyframes
         on a busy machine)."""
         if new_merge(st):
-            self._linker.submit(self._register, st["robot_a"], st["robot_b"], st["transform"])
+            self._linker.submit(self._register, st["robot_a"], st["robot_b"], state_transform(st))
 
-    def _register(self, a: str, b: str, T: list) -> None:
+    def _register(self, a: str, b: str, T_a_b: np.ndarray) -> None:
         try:
-            self.db.add_link(a, b, np.array(T, np.float64))
+            self.db.add_link(a, b, T_a_b)
         except Exception:  # a robot deleted meanwhile, the store down: the merge stands
             log.exception("live map: link %s-%s not registered", a, b)
 
@@ -210,11 +217,11 @@ class LiveMap:
         work = {"aligning": [k.split("|") for k in flying], "due": max(0, due - len(flying))}
         work["quiet"] = self.quiet  # no keyframe for settle_s: last fits done once idle
         if work != self._noted:
-            self.db.store.live_put("worker", json.dumps(work | {"since": time.time()}))
+            write_worker(self.db, work | {"since": time.time()})
             self._noted = work
 
     def _place_new_robots(self, states: dict) -> None:
-        robots = (self.db.store.robot_count(), sorted(self.copiers))
+        robots = (self.db.robot_count(), sorted(self.copiers))
         if robots != self._robots_placed:  # a new robot or copier: the reference may change
             self.place(states)
             self._robots_placed = robots
@@ -222,7 +229,7 @@ class LiveMap:
     def tick(self) -> bool:
         """One step in the caller's thread: align the most useful pair with new evidence
         and place the fleet again; True if a pair was aligned."""
-        states = load_states(self.db.store)
+        states = load_states(self.db)
         due = self.due_pairs(states)
         if not due:
             self._place_new_robots(states)
@@ -231,9 +238,9 @@ class LiveMap:
         st = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))
         if not self._store_result(pair_key(a, b), st):
             return True
-        self.place(load_states(self.db.store))
+        self.place(load_states(self.db))
         if new_merge(st):
-            self._register(a, b, st["transform"])
+            self._register(a, b, state_transform(st))
         return True
 
     # --- which pair -------------------------------------------------------------------
@@ -241,7 +248,7 @@ class LiveMap:
     def due_pairs(self, states: dict) -> list[tuple[str, str, list]]:
         """Pairs with new evidence, those that would place a new robot first, then by
         verified overlaps; each with its cascade overlaps."""
-        placed = set(read_placement(self.db.store).get("transforms", {}))
+        placed = set(read_placement(self.db).T_ref)
         now, due = time.monotonic(), []
         quiet, wall = self._quiet(now), time.time()
         copied: dict[str, dict] = {}  # robot -> {its keyframe: the robot it repeats}
@@ -281,12 +288,11 @@ class LiveMap:
         return self.quiet
 
     def _view_counts(self, a: str, b: str) -> tuple[int, int]:
-        store = self.db.store
-        return tuple(len(store.view_ids(store.robot_code(r))) for r in (a, b))
+        return tuple(len(self.db.view_ids(r)) for r in (a, b))
 
     # --- aligning one pair --------------------------------------------------------------
 
-    def attempt(self, a: str, b: str, overlaps: list, before: dict | None) -> dict:
+    def attempt(self, a: str, b: str, overlaps: list, before: PairState | None) -> PairState:
         """Align A and B from their stored views near the verified overlaps; the pair's new
         state (a gated refusal of a merged pair keeps the merge)."""
         st = {"robot_a": a, "robot_b": b, "evidence": len(overlaps), "at": time.time()}
@@ -294,7 +300,7 @@ class LiveMap:
         if nominated:  # no verified evidence: one try, with every view, until keyframes grow
             counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
             st |= {"evidence": 0, "nominated": [counts.get(a, 0), counts.get(b, 0)]}
-        st["since"] = [incarnation(self.db.store, r) for r in (a, b)]  # who was aligned
+        st["since"] = [self.db.incarnation(r) for r in (a, b)]  # who was aligned
         st["attempts"] = (before or {}).get("attempts", 0) + 1
         ranked = sorted(overlaps, key=lambda o: -o.inliers)
         first = before is None and not nominated
@@ -315,24 +321,22 @@ class LiveMap:
         except FleetmapError as exc:  # the aligner down or refusing the request
             self._backoff[pair_key(a, b)] = time.monotonic() + self.params.failure_backoff_s
             raise RuntimeError(f"aligner failed on {a}-{b}: {exc}") from exc
-        keys = ("reason", "inliers", "holdout_residual_m", "method", "seconds")
-        fit = {k: answer.get(k) for k in keys}
-        if answer["merged"]:
-            T = np.array(answer["transform"], np.float64)
+        fit = Fit.from_json(answer, a, b)
+        if fit.merged:
             log.info("live map: %s-%s merged (%d views each side)", a, b, len(views[0]))
-            new = st | fit | {"status": "merged", "transform": T.tolist()}
+            T_a_b = transform_to_json(fit.T_a_b)
+            new = st | fit.state_fields() | {"status": "merged", "transform": T_a_b}
             return refit_or_kept(before, new, lambda: [whole_map_views(self.db, r) for r in (a, b)])
-        log.info("live map: %s-%s refused by the gate: %s", a, b, answer["reason"])
+        log.info("live map: %s-%s refused by the gate: %s", a, b, fit.reason)
         if before is not None and before["status"] == "merged":
             keep = {k: st[k] for k in ("evidence", "attempts", "budget", "since")}
-            return before | keep | {"last_refusal": answer["reason"]}
+            return before | keep | {"last_refusal": fit.reason}
         st["refusals"] = (before or {}).get("refusals", 0) + 1  # its back-off doubles
-        return st | fit | {"status": "refused"}
+        return st | fit.state_fields() | {"status": "refused"}
 
     def _views(self, robot: str, seeds: list[int], max_views: int) -> list:
         """The robot's views to align: verified keyframes first, spread as in a batch merge."""
-        store = self.db.store
-        with_view = store.view_ids(store.robot_code(robot))
+        with_view = self.db.view_ids(robot)
         if not with_view:
             return []
         have = set(with_view)
@@ -351,39 +355,23 @@ class LiveMap:
 
     # --- placing the fleet ---------------------------------------------------------------
 
-    def place(self, states: dict) -> dict:
+    def place(self, states: dict[str, PairState]) -> Placement:
         """Place every robot reachable from the reference through merged pairs; store the
         placement, its version raised only when it changed."""
-        from fleetmap.cycles import disagreeing
-        from fleetmap.placement import optimise_poses, spanning_placement
-
         names = robot_order(self.db)
         flagged = {r: why for r, why in self.copiers.items() if r in names}
         edges = merged_edges(states, set(names) - set(flagged))
-        old = read_placement(self.db.store)
+        old = read_placement(self.db)
         counts = {r["robot_id"]: r["keyframes"] for r in self.db.robots()}
         ref = reference(names, edges, counts)
-        if ref is None:
-            placed, optimised = {}, False
-        else:
-            order = [ref] + [n for n in names if n != ref]
-            placed, chain = spanning_placement(order, edges)
-            bad = disagreeing(placed, chain, edges)
-            if bad:  # no robot placed through fits that disagree
-                flagged |= bad
-                edges = {k: e for k, e in edges.items() if not set(k) & set(bad)}
-                placed, chain = spanning_placement(order, edges)
-            placed, optimised = optimise_poses(placed, edges, ref, chain)
-        new = {"reference": ref, "transforms": {r: T.tolist() for r, T in placed.items()}}
-        new["flagged"] = flagged
-        if not same_placement(old, new):
-            new |= {
-                "version": old.get("version", 0) + 1,
-                "updated_at": time.time(),
-                "optimised": optimised,
-                "edges": [[a, b, e["inliers"]] for (a, b), e in edges.items()],
-            }
-            self.db.store.live_put("map", json.dumps(new))
-            log.info("live map version %d: %d robots placed", new["version"], len(placed))
-            return new
-        return old
+        new = Placement(ref, flagged=flagged)
+        if ref is not None:
+            new, _ = place_fleet([ref] + [n for n in names if n != ref], edges)
+            new.flagged = flagged | new.flagged
+        if new.same_as(old):
+            return old
+        new.version, new.updated_at = old.version + 1, time.time()
+        new.optimised = bool(new.optimised)
+        write_placement(self.db, new)
+        log.info("live map version %d: %d robots placed", new.version, len(new.T_ref))
+        return new

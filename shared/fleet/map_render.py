@@ -1,12 +1,10 @@
-"""What the live map shows: the map document (`GET /map`), why a robot is not placed, the
-merged cloud, the keyframe trajectories and the overview picture, all read from the store
-(any replica answers the same), with per-process caches of what never changes (a keyframe's
-pose and its share of the cloud)."""
+"""The live map's merged cloud, keyframe trajectories and overview picture (the files
+behind `GET /map/cloud.ply`, `/map/trajectories`, `/map/overview.png`), with per-process
+caches of what never changes (a keyframe's pose and its share of the cloud)."""
 
 from __future__ import annotations
 
 import io
-import json
 import logging
 import threading
 from collections import OrderedDict
@@ -14,9 +12,8 @@ from collections import OrderedDict
 import numpy as np
 
 from fleetmap.extract_pool import CLOUD_MAX_DEPTH_M, CLOUD_STRIDE  # as `fleetmap merge`
+from fleetmap.fleet.types import transform_from_json
 from fleetmap.geometry import apply, pose_to_tum
-from fleetmap.place.live import load_states, read_placement, robot_order
-from fleetmap.place.live_state import incarnation
 
 log = logging.getLogger(__name__)
 
@@ -29,78 +26,6 @@ MAX_EXTENT_M = 10_000.0  # points farther from the map origin are no map (bad in
 # Views decoded per request at most (full-size pixels: about 1.5 s of PNG depth decoding);
 # a cloud with more new views fills in over the next requests.
 CLOUD_DECODE_PIXELS = 5 * 4096 * 3072
-
-
-def map_document(db) -> dict:
-    """{"version", "reference", "transforms" (robot: T_ref_robot), "unmerged" [{"robot",
-    "reason"}], "robots", "updated_at"} and, for the operator, "fleet" (per robot:
-    keyframes, views, state), "pairs" (the merge worker's pair states) and "overlaps"."""
-    m = read_placement(db.store)
-    robots = db.robots()
-    names = robot_order(db, robots)
-    states = load_states(db.store)
-    graph = db.overlap_graph()
-    placed = m.get("transforms", {})
-    flagged = m.get("flagged", {})  # robots refused: copies, or fits that disagree
-    counts = {r["robot_id"]: r["keyframes"] for r in robots}
-    fleet = []
-    for r in names:
-        n_views = len(db.store.view_ids(db.store.robot_code(r) or -1))
-        state = "reference" if r == m.get("reference") else "merged" if r in placed else "unmerged"
-        fleet.append({"robot": r, "keyframes": counts.get(r, 0), "views": n_views, "state": state})
-    return {
-        "version": m.get("version", 0),
-        "reference": m.get("reference"),
-        "transforms": {r: T for r, T in placed.items() if r in counts},
-        "unmerged": [
-            {
-                "robot": f["robot"],
-                "reason": flagged.get(f["robot"]) or unmerged_reason(f, states, graph, placed),
-            }
-            for f in fleet
-            if f["state"] == "unmerged"
-        ],
-        "robots": names,
-        "updated_at": m.get("updated_at"),
-        "fleet": fleet,
-        "pairs": sorted(states.values(), key=lambda s: (s["robot_a"], s["robot_b"])),
-        "overlaps": graph,
-        "worker": _worker(db.store),
-    }
-
-
-def _worker(store) -> dict | None:
-    """The merge worker's last word: the pairs it is aligning and how many more wait; None
-    before it first ran (or without a worker)."""
-    raw = store.live_get("worker")
-    return None if raw is None else json.loads(raw)
-
-
-def unmerged_reason(robot: dict, states: dict, graph: list[dict], placed: dict) -> str:
-    """One line: why this robot is not in the map (yet)."""
-    r = robot["robot"]
-    if robot["views"] == 0:
-        return "its keyframes were posted without RGB-D views: they can be queried, not aligned"
-    mine = [s for s in states.values() if r in (s["robot_a"], s["robot_b"])]
-    merged = [s for s in mine if s["status"] == "merged"]
-    if merged:
-        others = sorted({s["robot_a"] if s["robot_b"] == r else s["robot_b"] for s in merged})
-        return (
-            f"merged with {', '.join(others)}, a group that shares no aligned place with "
-            "the reference's"
-        )
-    verified = [e for e in graph if r in (e["robot_a"], e["robot_b"])]
-    if not verified:
-        return "no verified overlap with another robot yet"
-    refused = [s for s in mine if s["status"] in ("refused", "no_views")]
-    if refused:
-        last = max(refused, key=lambda s: s["at"])
-        other = last["robot_a"] if last["robot_b"] == r else last["robot_b"]
-        return (
-            f"alignment with {other} refused on {last['evidence']} verified overlaps: "
-            f"{last['reason']}; tried again when more overlaps are found"
-        )
-    return "overlaps found, alignment pending"
 
 
 class MapRenderer:
@@ -133,9 +58,8 @@ class MapRenderer:
         with self._lock:
             if fresh:
                 self._spent, self.complete = 0, True
-            store = self.db.store
-            ids = store.view_ids(store.robot_code(robot) or -1)
-            life = incarnation(store, robot)
+            ids = self.db.view_ids(robot)
+            life = self.db.incarnation(robot)
             empty = (life, set(), np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
             cached = self._clouds.pop(robot, empty)
             _, done, pts, cols = cached if cached[0] == life else empty
@@ -192,7 +116,7 @@ class MapRenderer:
                 p, c = clouds[r]
                 if len(p) and voxel > BASE_VOXEL_M:
                     p, c = _voxelised(p, c, voxel)
-                pts.append(apply(np.array(m["transforms"][r]), p))
+                pts.append(apply(transform_from_json(m["transforms"][r]), p))
                 cols.append(c)
                 idx.append(np.full(len(p), k, np.uint16))
             out = _joined(pts, cols, idx)
@@ -204,12 +128,12 @@ class MapRenderer:
         qx, qy, qz, qw] rows (TUM order), in time order."""
         out = {}
         for r, T in m["transforms"].items():
-            T = np.array(T)
+            T_ref_r = transform_from_json(T)
             rows = []
-            for kf in self.db.store.robot_keyframe_ids(self.db.store.robot_code(r) or -1):
+            for kf in self.db.keyframe_ids(r):
                 stamp, P = self.pose(kf)
                 if P is not None:
-                    rows.append([stamp, *pose_to_tum(T @ P).tolist()])
+                    rows.append([stamp, *pose_to_tum(T_ref_r @ P).tolist()])
             out[r] = rows
         return out
 

@@ -1,4 +1,5 @@
-"""Choosing the RGB-D views to align from two robots' verified overlaps."""
+"""Choosing the RGB-D views to align from two robots' verified overlaps (`fleetmap merge`,
+`fleetmap align` and the live merge worker choose alike)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import numpy as np
 from fleetmap.correspondences import RGBDView
 from fleetmap.dataset import FrameRecord, Recording, load_depth, load_rgb
 from fleetmap.errors import BadRobotData
+from fleetmap.fleet.types import DEFAULT_VIEWS
 
 
 def overlaps_to_align(db, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
@@ -32,8 +34,8 @@ def select_views(
     rec_b: Recording,
     keyframes_a: list[int] | None = None,
     keyframes_b: list[int] | None = None,
-    max_views: int = 12,
-    radius_m: float = 3.0,
+    max_views: int = DEFAULT_VIEWS.max_views,
+    radius_m: float = DEFAULT_VIEWS.radius_m,
 ) -> tuple[list[int], list[int]]:
     """Frame indices of each robot's views to align, from the verified overlaps: the
     verified keyframes, then keyframes looking at the same part of the robot's map (look-at
@@ -55,7 +57,9 @@ def select_views(
     return out[0], out[1]
 
 
-def spread(n_seeds: int, look: np.ndarray, max_views: int, radius_m: float = 3.0) -> list[int]:
+def spread(
+    n_seeds: int, look: np.ndarray, max_views: int, radius_m: float = DEFAULT_VIEWS.radius_m
+) -> list[int]:
     """Indices of the views to align among candidates whose first `n_seeds` are the verified
     keyframes (best first): the seeds, then candidates whose look-at points (`look`, (N, 3))
     lie within `radius_m` of a seed's, by farthest-point sampling, `max_views` in all."""

@@ -15,12 +15,14 @@ from collections.abc import Callable
 
 import numpy as np
 
+from fleetmap.fleet.types import PairState, edge, state_transform
+
 #: Views a robot that judge a refit against the fit it would replace (`refit_or_kept`):
 #: about 1-2 s of decoding for both robots, at most a few times per pair.
 WHOLE_MAP_VIEWS = 40
 
 
-def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: float) -> bool:
+def is_due(st: PairState | None, n: int, p, quiet: bool, views_changed: bool, now: float) -> bool:
     """Whether a pair with state `st` (None: never tried) and `n` verified overlaps is due
     (`p`: `LiveParams`; `now`: unix time, as `st["at"]`)."""
     if st is None:
@@ -38,7 +40,7 @@ def is_due(st: dict | None, n: int, p, quiet: bool, views_changed: bool, now: fl
     return n >= max(st["evidence"] + p.retry_min_new, np.ceil(st["evidence"] * p.retry_factor))
 
 
-def refit_or_kept(before: dict | None, new: dict, views: Callable[[], list]) -> dict:
+def refit_or_kept(before: PairState | None, new: PairState, views: Callable[[], list]) -> PairState:
     """A pair's state after a gated fit: the new fit, unless it replaces a merge and fits
     the two robots' surfaces worse than the transform it would replace. Both are measured
     by the aligner's own depth-alone `surface_rmse` on the robots' whole maps (`views()`:
@@ -59,7 +61,7 @@ def whole_map_views(db, robot: str, n: int = WHOLE_MAP_VIEWS) -> list:
     """The robot's stored views (`StoredView`), evenly thinned to at most `n`."""
     from fleetmap.view import stored_view
 
-    ids = db.store.view_ids(db.store.robot_code(robot))
+    ids = db.view_ids(robot)
     step = max(1, -(-len(ids) // n))
     return [stored_view(db.load_frame(k), *db.view_bytes(k)) for k in ids[::step]]
 
@@ -67,11 +69,11 @@ def whole_map_views(db, robot: str, n: int = WHOLE_MAP_VIEWS) -> list:
 def robot_order(db, robots: list[dict] | None = None) -> list[str]:
     """Robot names in order of arrival (their store codes)."""
     names = [r["robot_id"] for r in (db.robots() if robots is None else robots)]
-    codes = {n: db.store.robot_code(n) for n in names}
+    codes = {n: db.robot_code(n) for n in names}
     return sorted((n for n in names if codes[n] is not None), key=lambda n: codes[n])
 
 
-def new_merge(st: dict) -> bool:
+def new_merge(st: PairState) -> bool:
     """Whether a stored pair state is a fit just made (to register as a link): not a
     refusal or worse refit that kept an earlier merge."""
     return (
@@ -142,28 +144,16 @@ def reference(names: list[str], edges: dict, counts: dict | None = None) -> str 
     return min((n for n in names if len(group[n]) == size), key=lambda n: (-counts.get(n, 0), n))
 
 
-def merged_edges(states: dict, names: set[str]) -> dict:
-    """(A, B) -> {"T_a_b", "inliers"} of every merged pair whose robots still exist."""
+def merged_edges(states: dict[str, PairState], names: set[str]) -> dict:
+    """(A, B) -> `edge` of every merged pair whose robots are in `names`."""
     edges = {}
     for st in states.values():
         if st["status"] != "merged":
             continue
         a, b = st["robot_a"], st["robot_b"]
         if a in names and b in names:
-            edges[(a, b)] = {"T_a_b": np.array(st["transform"]), "inliers": st["inliers"]}
+            edges[(a, b)] = edge(state_transform(st), st["inliers"])
     return edges
-
-
-def same_placement(old: dict, new: dict) -> bool:
-    if old.get("reference") != new["reference"] or set(old.get("transforms", {})) != set(
-        new["transforms"]
-    ):
-        return False
-    if old.get("flagged", {}) != new.get("flagged", {}):
-        return False
-    return all(
-        np.allclose(old["transforms"][r], T, atol=1e-9) for r, T in new["transforms"].items()
-    )
 
 
 def same_picture(fa, fb, tol_px: float = 0.5, share: float = 0.9) -> bool:

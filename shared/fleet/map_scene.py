@@ -13,6 +13,7 @@ from collections import OrderedDict
 
 import numpy as np
 
+from fleetmap.fleet.types import transform_from_json
 from fleetmap.geometry import apply
 
 #: At most this many points per robot: 15 bytes each, 1.5 MB (the page's budget is 2 MB)
@@ -71,11 +72,11 @@ class SceneCache:
 def overlap_lines(db, renderer, m: dict) -> list[list]:
     """Each verified overlap between two placed robots as [robot_a, robot_b, xa, ya, za,
     xb, yb, zb]: the two keyframes' camera positions in the reference frame."""
-    placed = {r: np.array(T) for r, T in m["transforms"].items()}
+    T_ref = {r: transform_from_json(T) for r, T in m["transforms"].items()}
     lines = []
     for e in m["overlaps"]:
         a, b = e["robot_a"], e["robot_b"]
-        if a not in placed or b not in placed:
+        if a not in T_ref or b not in T_ref:
             continue
         for o in db.overlaps(a, b):
             if o.source != "cascade":
@@ -83,7 +84,7 @@ def overlap_lines(db, renderer, m: dict) -> list[list]:
             (_, Pa), (_, Pb) = renderer.pose(o.kf_a), renderer.pose(o.kf_b)
             if Pa is None or Pb is None:
                 continue
-            pa = apply(placed[a], Pa[:3, 3][None])[0]
-            pb = apply(placed[b], Pb[:3, 3][None])[0]
+            pa = apply(T_ref[a], Pa[:3, 3][None])[0]
+            pb = apply(T_ref[b], Pb[:3, 3][None])[0]
             lines.append([a, b, *np.round(pa, 4).tolist(), *np.round(pb, 4).tolist()])
     return lines

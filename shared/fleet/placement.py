@@ -1,21 +1,42 @@
 """Placement of a fleet's maps in the reference robot's frame: the strongest pairwise fits
 first (a maximum spanning tree of the overlap graph, weighted by inliers), then a pose
 graph (Open3D) where the fits form cycles. A robot no chain of fits reaches stays
-unplaced."""
+unplaced. `place_fleet` is the stage both `fleetmap merge` and the live merge worker run:
+where the fleet is optimised."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from fleetmap.fleet.cycles import disagreeing
+from fleetmap.fleet.types import Placement
+from fleetmap.geometry import invert
 from fleetmap.lazy import LazyModule
 
 o3d = LazyModule("open3d")
 
 
+def place_fleet(order: list[str], edges: dict[tuple[str, str], dict]) -> tuple[Placement, dict]:
+    """Place the fleet in the frame of order[0] (the reference): the strongest chain of
+    fits, no robot placed through a cycle whose fits disagree (`fleetmap.fleet.cycles`;
+    those are `flagged`), then the pose graph where fits form cycles.
+
+    edges[(a, b)]: `fleetmap.fleet.types.edge`; returns the placement and the edges used."""
+    placed, chain = spanning_placement(order, edges)
+    bad = disagreeing(placed, chain, edges)
+    if bad:
+        edges = {k: e for k, e in edges.items() if not set(k) & set(bad)}
+        placed, chain = spanning_placement(order, edges)
+    placed, optimised = optimise_poses(placed, edges, order[0], chain)
+    links = [[a, b, e["inliers"]] for (a, b), e in edges.items()]
+    placement = Placement(order[0], placed, bad, optimised=optimised, links=links, chain=chain)
+    return placement, edges
+
+
 def spanning_placement(
     robots: list[str], edges: dict[tuple[str, str], dict]
 ) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
-    """T_ref_robot for every robot reachable from robots[0] through merged edges, choosing
+    """T_ref_r for every robot reachable from robots[0] through merged edges, choosing
     the strongest links first (Prim's maximum spanning tree on inliers).
 
     edges[(a, b)] holds {"T_a_b": 4x4, "inliers": int}; returns transforms and the chain
@@ -26,6 +47,8 @@ def spanning_placement(
     while True:
         best = None
         for (a, b), e in edges.items():
+            # the general inverse, not `geometry.invert`: placements stay bit-identical to
+            # earlier releases' (tests/unit/test_cycles.py compares them at 1e-9 degrees)
             for src, dst, T in ((a, b, e["T_a_b"]), (b, a, np.linalg.inv(e["T_a_b"]))):
                 if src in placed and dst not in placed and (best is None or e["inliers"] > best[0]):
                     best = (e["inliers"], src, dst, T)
@@ -73,5 +96,5 @@ def optimise_poses(
             max_correspondence_distance=0.05, edge_prune_threshold=0.25, reference_node=0
         ),
     )
-    T_ref = np.linalg.inv(np.asarray(graph.nodes[0].pose))
-    return {n: T_ref @ np.asarray(graph.nodes[idx[n]].pose) for n in order}, True
+    T_ref_world = invert(np.asarray(graph.nodes[0].pose))
+    return {n: T_ref_world @ np.asarray(graph.nodes[idx[n]].pose) for n in order}, True
