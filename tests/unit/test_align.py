@@ -68,7 +68,7 @@ def test_second_look_reuses_recent_views_features_and_matches(hololens, monkeypa
     """The live map retries a refused pair with mostly the same views: their ASIFT features
     and view-pair matches come from the last requests, and the matches are the same."""
     from fleetmap.align import second_look as sl
-    from fleetmap.pairs import load_view
+    from fleetmap.fleet.view_choice import load_view
 
     ra, rb = (read_recording(hololens / n) for n in ("hl_a", "hl_b"))
     pairs = [(load_view(ra, i), load_view(rb, j)) for i, j in ((20, 30), (40, 45))]
