@@ -14,6 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.scheduling import (  # noqa: F401 (the hooks: tests/scheduling.py)
+    pytest_collection_modifyitems,
+    pytest_xdist_make_scheduler,
+)
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("FLEETMAP_DATA", ROOT.parent / "shared" / "data"))
 
