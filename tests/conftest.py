@@ -14,6 +14,11 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.scheduling import (  # noqa: F401 (the hooks: tests/scheduling.py)
+    pytest_collection_modifyitems,
+    pytest_xdist_make_scheduler,
+)
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("FLEETMAP_DATA", ROOT.parent / "shared" / "data"))
 
@@ -315,13 +320,21 @@ def sim_fleet(tmp_path_factory) -> tuple[Path, dict]:
     return sim, json.loads((sim / "T_true.json").read_text())
 
 
+#: The session aligner's setting: no second look (ASIFT on refused pairs, 10-30 s each).
+NO_SECOND_LOOK = {"FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK": "false"}
+
+
 @pytest.fixture(scope="session")
 def aligner_url() -> str:
     """One aligner process for the session (or ALIGNER_URL, e.g. `docker compose up`'s).
-    Stateless between requests: tests share it."""
+    Stateless between requests: tests share it. For tests of the services' mechanics (the
+    live map, chaos, the CLI over HTTP), whose assertions hold with or without the second
+    look, so it is off (NO_SECOND_LOOK): the live map's early fits on one or a few overlaps
+    are refused without it. Tests of recall, refusal and accuracy keep the default (their
+    merges start their own aligner)."""
     from tests.servers import running
 
-    with running("aligner", url_env="ALIGNER_URL") as url:
+    with running("aligner", url_env="ALIGNER_URL", env=NO_SECOND_LOOK) as url:
         yield url
 
 

@@ -101,13 +101,16 @@ class Service:
 
 
 @contextlib.contextmanager
-def running(kind: str, data_dir: Path | None = None, url_env: str | None = None):
+def running(
+    kind: str, data_dir: Path | None = None, url_env: str | None = None, env: dict | None = None
+):
     """A service URL: from the environment variable `url_env` if set (e.g. against
-    `docker compose up`), else a fresh process on a free port, stopped afterwards."""
+    `docker compose up`), else a fresh process on a free port (with `env` added to its
+    environment), stopped afterwards."""
     if url_env and os.environ.get(url_env):
         yield os.environ[url_env]
         return
-    svc = Service(kind, data_dir).start()
+    svc = Service(kind, data_dir, env=env).start()
     try:
         yield svc.url
     finally:

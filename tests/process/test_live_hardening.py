@@ -24,7 +24,8 @@ from tests.servers import Service, free_port
 
 @contextlib.contextmanager
 def serving(app):
-    """The app on a real uvicorn server in this process (its state reachable)."""
+    """The app on a real uvicorn server in this process (its state reachable): (URL, the
+    server)."""
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
@@ -32,7 +33,7 @@ def serving(app):
     while not server.started:
         time.sleep(0.05)
     try:
-        yield f"http://127.0.0.1:{port}"
+        yield f"http://127.0.0.1:{port}", server
     finally:
         server.should_exit = True
         thread.join(30)
@@ -42,12 +43,15 @@ def test_healthz_answers_while_sixty_map_requests_wait(tmp_path):
     """Issue 26.8: 60 overview and cloud requests that cannot progress (the renderer held)
     used to take every worker thread of the server; /healthz then waited with them."""
     app = create_app(Settings(data_dir=tmp_path))
-    with serving(app) as url:
+    with serving(app) as (url, server):
         paths = ["/map/overview.png", "/map/cloud.ply"] * 30
         with ThreadPoolExecutor(60) as pool:
             with app.state.renderer._lock:
                 waiting = [pool.submit(httpx.get, url + p, timeout=300) for p in paths]
-                time.sleep(3)  # for the 60 requests to reach the server (no time asserted)
+                end = time.monotonic() + 60  # the 60 requests in the app (was: a 3 s sleep)
+                while len(server.server_state.tasks) < 60:
+                    assert time.monotonic() < end, len(server.server_state.tasks)
+                    time.sleep(0.02)
                 health = httpx.get(url + "/healthz", timeout=20)
                 assert health.status_code == 200 and health.json()["status"] == "ok"
                 assert httpx.get(url + "/robots", timeout=20).status_code == 200

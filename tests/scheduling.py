@@ -1,0 +1,108 @@
+"""How the suite is shared by pytest-xdist workers (`scripts/test.sh`: `-n 2 --dist
+loadgroup`): which tests run on one worker (a group), and in what order.
+
+By default a group is a test module, so a module's fixtures (the live map's services, the
+drifted merge, the demo merge) are built once. In the modules in PER_TEST, whose tests share
+only session fixtures, each test is its own group, except the tests that share a costly
+session fixture (SHARED): those run together, so it is built once.
+
+Groups are handed out longest first (COST_S: the seconds each took in a serial run of the
+whole suite on this 2-core machine, idle; the others after them in collection order), so the
+last groups left are short ones and neither worker waits long for the other at the end.
+
+The groups are given to xdist by its scheduler hook (`pytest_xdist_make_scheduler`), from
+the test ids alone: xdist's own `xdist_group` marks no longer reach its scheduler under
+pytest 9 (they are appended to `Item._nodeid`, which pytest 9 no longer reads)."""
+
+from __future__ import annotations
+
+import pytest
+
+#: Modules whose tests share no module-scoped fixture: each test may run on either worker.
+PER_TEST = (
+    "tests/e2e/test_merge.py",
+    "tests/e2e/test_recall.py",
+    "tests/e2e/test_sun3d_alignment.py",
+    "tests/process/test_bags.py",
+    "tests/process/test_fuzz_api.py",
+)
+
+#: Tests of those modules that share a costly session fixture (named as the group).
+SHARED = {
+    "tests/e2e/test_merge.py::test_merge_sun3d_pair_recovers_ground_truth": "sun3d_merge",
+    "tests/process/test_bags.py::test_merge_with_a_ros2_bag_robot_gives_the_folder_transform": (
+        "sun3d_merge"
+    ),
+    "tests/e2e/test_sun3d_alignment.py::test_sun3d_wide_baseline_recovers_the_ground_truth": (
+        "sun3d_alignment"
+    ),
+    "tests/e2e/test_sun3d_alignment.py::test_sun3d_link_from_the_aligner_covers_robot_b": (
+        "sun3d_alignment"
+    ),
+}
+
+_PARTS = "tests/e2e/test_sun3d_alignment.py::test_sun3d_parts_are_merged_right_or_not_at_all"
+
+#: Serial seconds of the costly groups (a clean run, idle), by group name.
+COST_S = {
+    "tests/e2e/test_live_map.py": 117,
+    "tests/e2e/test_merge.py::test_merge_hololens_and_a_robot_from_another_building": 88,
+    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 53,
+    "tests/e2e/test_recall.py::test_room_walked_the_other_way_is_merged_on_a_second_look": 44,
+    "tests/e2e/test_fleet_drift.py": 43,
+    "sun3d_merge": 28,
+    f"{_PARTS}[part_a1-part_b1-False]": 28,
+    f"{_PARTS}[part_a3-part_b3-False]": 27,
+    "tests/e2e/test_demo_fleet.py": 26,
+    "tests/e2e/test_sun3d_alignment.py::test_different_places_are_not_merged": 21,
+    "tests/process/test_fuzz_api.py::test_no_5xx_and_no_hang[aligner]": 21,
+    "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 21,
+    "tests/e2e/test_recall.py::test_second_look_merges_only_what_its_matches_pin": 20,
+    "tests/process/test_fuzz_api.py::test_no_5xx_and_no_hang[place-db]": 20,
+    "tests/process/test_place_db_replicas.py": 17,
+    "tests/process/test_robustness.py": 17,
+    "tests/process/test_reliability.py": 17,
+    "tests/process/test_cli.py": 16,
+    "tests/api/test_live_recall.py": 14,
+    "sun3d_alignment": 13,
+    "tests/process/test_chaos.py": 12,
+    f"{_PARTS}[part_a4-part_b4-True]": 12,
+    "tests/unit/test_links_speed.py": 10,
+}
+
+
+def group_of(nodeid: str) -> str:
+    """The group of a test, from its id."""
+    module = nodeid.split("::", 1)[0]
+    if module not in PER_TEST:
+        return module
+    return SHARED.get(nodeid, nodeid)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """On an xdist worker, the tests in their groups' order (the scheduler keeps the order
+    collected): longest groups first. A run without xdist keeps the collection order."""
+    if not hasattr(config, "workerinput"):
+        return
+    groups = {id(item): group_of(item.nodeid) for item in items}
+    first: dict[str, int] = {}
+    for k, item in enumerate(items):
+        first.setdefault(groups[id(item)], k)
+    items.sort(key=lambda it: (-COST_S.get(groups[id(it)], 0), first[groups[id(it)]]))
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """`--dist loadgroup`: xdist's scope scheduler with these groups as its scopes, handed
+    out in the order collected."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return group_of(nodeid)
+
+    config.option.loadscopereorder = False  # longest first, as collected
+    return GroupScheduling(config, log)
