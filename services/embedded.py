@@ -74,7 +74,13 @@ def embedded_service(kind: str, data_dir: Path | None = None, after: Callable | 
             import uvicorn
 
             app = _app(kind, data_dir)
-            config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
+            # the job's own client on loopback: idle keep-alive connections stay open (60 s,
+            # not uvicorn's 5), so that a connection the client reuses, on a machine whose
+            # cores are busy, is never closed under a request (a drift merge once failed
+            # with "Connection reset by peer" posting a keyframe at load 14)
+            config = uvicorn.Config(
+                app, host="127.0.0.1", port=port, log_level="warning", timeout_keep_alive=60
+            )
             box["server"] = uvicorn.Server(config)
         except Exception as exc:  # raised by wait(), in the job's thread
             box["error"] = exc
