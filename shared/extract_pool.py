@@ -61,13 +61,14 @@ class _Task:
     view: bool = False
 
 
-def _init(vocab_path) -> None:
+def _init(vocab_path, worker: bool = True) -> None:
     import cv2
 
     from fleetmap.extract import FrameExtractor
     from fleetmap.vocabulary import load_vocabulary
 
-    cv2.setNumThreads(1)  # one process per core already
+    if worker:  # one process per core already; never in the caller's own process, whose
+        cv2.setNumThreads(1)  # aligner and place database would stay on one thread after
     global _extractor
     _extractor = FrameExtractor(load_vocabulary(vocab_path))
 
@@ -142,7 +143,7 @@ def extract_keyframes(
     tasks = _tasks(recs, kf_index, views, by_time)
     workers = default_workers() if workers is None else workers
     if workers <= 1 or len(tasks) < 8:
-        _init(vocab_path)
+        _init(vocab_path, worker=False)
         return (_extract(t) for t in tasks)
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["fleetmap.extract", "fleetmap.extract_pool"])
