@@ -151,6 +151,8 @@ def refine_with_depth(
     clouds (in the cameras' frames), kept where ICP overlaps well and moves the fit by less
     than the 3D tolerance (else the feature fit stands). keyframes[R]: the extracted
     `Keyframe`s (map-cloud points in the robot's map frame)."""
+    from threadpoolctl import threadpool_limits
+
     from fleetmap.mapcloud import MapCloud, icp
 
     cache: dict[tuple[str, int], object] = {}
@@ -163,14 +165,15 @@ def refine_with_depth(
         return cache[(r, i)]
 
     out = []
-    for c in closures:
-        if c.source == "features":
-            T, fitness, _ = icp(
-                cloud(c.robot_b, c.j), cloud(c.robot_a, c.i), c.T_a_b,
-                distances=(params.tol_m, params.tol_m / 2), iterations=30,
-            )  # fmt: skip
-            D = invert(c.T_a_b) @ T
-            if fitness >= 0.3 and np.linalg.norm(D[:3, 3]) < params.tol_m:
-                c = Closure(c.robot_a, c.i, c.robot_b, c.j, T, c.inliers, "depth")
-        out.append(c)
+    with threadpool_limits(1):  # many small problems: OpenMP threads only contend
+        for c in closures:
+            if c.source == "features":
+                T, fitness, _ = icp(
+                    cloud(c.robot_b, c.j), cloud(c.robot_a, c.i), c.T_a_b,
+                    distances=(params.tol_m, params.tol_m / 2), iterations=30,
+                )  # fmt: skip
+                D = invert(c.T_a_b) @ T
+                if fitness >= 0.3 and np.linalg.norm(D[:3, 3]) < params.tol_m:
+                    c = Closure(c.robot_a, c.i, c.robot_b, c.j, T, c.inliers, "depth")
+            out.append(c)
     return out

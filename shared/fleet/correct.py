@@ -163,8 +163,8 @@ def fleet_closures(
     pairs = overlap_pairs(overlaps, stamps)
     with threadpool_limits(1):  # many small problems: BLAS and OpenMP threads only contend
         closures = find_closures(frames, pairs, params.closure)
-        if refine:
-            closures = refine_with_depth(closures, keyframes, params.closure)
+    if refine:
+        closures = refine_with_depth(closures, keyframes, params.closure)
     # a rigid fit of two bent maps is right at one place at best; where the robots' own
     # keyframes verify a closure, that measures them exactly, drift-free. The fit links
     # only robots that no closure links (HoloLens walk, 1 deg/m: ATE 5.6 cm without fit
@@ -215,11 +215,8 @@ def correct_fleet(
         }
         why = f"no robot's path bends {params.min_bend_m:g} m under the drift model"
         return FleetCorrection(rigid, Solution({}, np.zeros(0), 0.0), keyframes, why)
-    from threadpoolctl import threadpool_limits
-
     found = fleet_closures(keyframes, edges, overlaps, params, refine=False)
     quick = solve(found)
     if all(c.bend_m < params.min_bend_m / 2 for c in quick.robots.values()):
         return quick
-    with threadpool_limits(1):
-        return solve(refine_with_depth(found, keyframes, params.closure))
+    return solve(refine_with_depth(found, keyframes, params.closure))
