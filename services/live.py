@@ -201,6 +201,8 @@ def write_live_outputs(out: Path, m: dict, files: LiveFiles, source: str, second
         for _ in range(e["pairs"])
     ]
     report = live_report(m, source.split(",")[0], files.overlaps, edges, files.voxel_m)
+    if "fleet_graph" in m:  # the live map's keyframe graph, as `fleetmap merge` reports it
+        report["fleet_graph"] = m["fleet_graph"]
     report["timing_s"] = {"total": round(seconds, 3)}
     if names:
         pictures.overlap_matrix(out / "overlap_matrix.png", names, {"overlaps": pairs})

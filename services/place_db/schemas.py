@@ -172,6 +172,13 @@ class RobotState(BaseModel):
     keyframes: int
     views: int = Field(description="keyframes stored with their RGB-D view")
     state: Literal["reference", "merged", "unmerged"]
+    drift_correction: dict | None = Field(
+        None,
+        description="once the keyframe graph is solved on this placement: `applied` (the "
+        "robot's map bent beyond the closures' noise and was corrected), `moved_median_m`, "
+        "`moved_max_m` (how far the correction moved its keyframes from the rigid placement), "
+        "`bend_m`, `flagged` (moved beyond what the drift model allows), `rigid_placement`",
+    )
 
 
 class LiveMap(BaseModel):
@@ -192,4 +199,10 @@ class LiveMap(BaseModel):
         description="the merge worker: `aligning` (the robot pairs being aligned), `due` "
         "(pairs waiting for a free slot), `quiet` (no keyframe for a while: merged pairs get a "
         "last fit on every overlap), `since` (unix time of the change)",
+    )
+    fleet_graph: dict | None = Field(
+        None,
+        description="the keyframe pose graph over the placed robots, solved on this placement: "
+        "`keyframes`, `closures` (by kind), `intra_robot`, `rejected` (by GNC), `optimise_s`, "
+        "`applied` (robots corrected), `skipped` (why no graph was needed), `solved_at`",
     )

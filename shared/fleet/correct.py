@@ -169,9 +169,39 @@ def fleet_closures(
     # keyframes verify a closure, that measures them exactly, drift-free. The fit links
     # only robots that no closure links (HoloLens walk, 1 deg/m: ATE 5.6 cm without fit
     # closures, 6.2 or 18.2 cm with them, by which overlaps the place database found)
+    return with_fit_closures(closures, pairs, poses, edges)
+
+
+def with_fit_closures(closures: list[Closure], pairs, poses: dict, edges: dict) -> list[Closure]:
+    """The closures and, at the overlaps `pairs` (robot_a, i, robot_b, j) of robots no
+    closure links, the pairwise fits as closures."""
     linked = {frozenset((c.robot_a, c.robot_b)) for c in closures if c.robot_a != c.robot_b}
     unlinked = {q for q in pairs if frozenset((q[0], q[2])) not in linked}
     return closures + fit_closures(unlinked, poses, edges)
+
+
+def unbendable(poses: dict[str, np.ndarray], params: CorrectionParams) -> str:
+    """Why no graph is worth building (no robot's path long enough for the drift model to
+    bend it by `min_bend_m`: `drift_bound`), or "" where one is."""
+    if all(drift_bound(T, params.graph) < params.min_bend_m for T in poses.values()):
+        return f"no robot's path bends {params.min_bend_m:g} m under the drift model"
+    return ""
+
+
+def bends(fleet: FleetCorrection, params: CorrectionParams) -> bool:
+    """Whether a solution on unrefined closures bends any map by half `min_bend_m`: only
+    then can the depth-refined graph apply a correction."""
+    return any(c.bend_m >= params.min_bend_m / 2 for c in fleet.robots.values())
+
+
+def rigid_fleet(keyframes: dict, placed: dict, params: CorrectionParams, why: str):
+    """Every robot as placed, no graph (`why`)."""
+    out = {}
+    for r, kfs in keyframes.items():
+        T = np.stack([k.frame.T_map_cam for k in kfs])
+        stamps = np.array([k.frame.stamp for k in kfs])
+        out[r] = _robot(stamps, T, placed[r] @ T, placed[r], params)
+    return FleetCorrection(out, Solution({}, np.zeros(0), 0.0), keyframes, why)
 
 
 def correct_fleet(
@@ -209,14 +239,10 @@ def correct_fleet(
 
     if closures is not None:
         return solve(closures)
-    if all(drift_bound(T, params.graph) < params.min_bend_m for T in poses.values()):
-        rigid = {
-            r: _robot(stamps[r], T, placed[r] @ T, placed[r], params) for r, T in poses.items()
-        }
-        why = f"no robot's path bends {params.min_bend_m:g} m under the drift model"
-        return FleetCorrection(rigid, Solution({}, np.zeros(0), 0.0), keyframes, why)
+    if why := unbendable(poses, params):
+        return rigid_fleet(keyframes, placed, params, why)
     found = fleet_closures(keyframes, edges, overlaps, params, refine=False)
     quick = solve(found)
-    if all(c.bend_m < params.min_bend_m / 2 for c in quick.robots.values()):
+    if not bends(quick, params):
         return quick
     return solve(refine_with_depth(found, keyframes, params.closure))

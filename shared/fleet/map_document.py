@@ -5,14 +5,20 @@ any replica answers the same."""
 from __future__ import annotations
 
 from fleetmap.fleet.merge_rules import robot_order
-from fleetmap.fleet.state import load_states, read_placement, read_worker
+from fleetmap.fleet.state import load_states, read_graph, read_placement, read_worker
 from fleetmap.fleet.types import transform_to_json
+
+#: A robot's drift correction in `GET /map` (`fleet` items) and report.json (`robots`).
+DRIFT_KEYS = ("applied", "moved_median_m", "moved_max_m", "bend_m", "flagged", "rigid_placement")
 
 
 def map_document(db) -> dict:
     """{"version", "reference", "transforms" (robot: T_ref_robot), "unmerged" [{"robot",
     "reason"}], "robots", "updated_at"} and, for the operator, "fleet" (per robot:
-    keyframes, views, state), "pairs" (the merge worker's pair states) and "overlaps"."""
+    keyframes, views, state and, once the keyframe graph is solved on this placement, its
+    drift correction), "pairs" (the merge worker's pair states), "overlaps" and
+    "fleet_graph" (the keyframe graph's figures). A drift-corrected robot's transform is
+    its corrected map's best rigid approximation, as in `fleetmap merge`'s report."""
     m = read_placement(db)
     robots = db.robots()
     names = robot_order(db, robots)
@@ -25,10 +31,17 @@ def map_document(db) -> dict:
         n_views = len(db.view_ids(r))
         state = "reference" if r == m.reference else "merged" if r in placed else "unmerged"
         fleet.append({"robot": r, "keyframes": counts.get(r, 0), "views": n_views, "state": state})
+    transforms = {r: transform_to_json(T) for r, T in placed.items() if r in counts}
+    solved = read_graph(db)
+    solved = solved if solved is not None and solved["version"] == m.version else None
+    for f in fleet if solved is not None else []:
+        if (row := solved["robots"].get(f["robot"])) is not None:
+            f["drift_correction"] = {k: row[k] for k in DRIFT_KEYS}
+            transforms[f["robot"]] = row["rigid"]  # the corrected map's best rigid T_ref_R
     return {
         "version": m.version,
         "reference": m.reference,
-        "transforms": {r: transform_to_json(T) for r, T in placed.items() if r in counts},
+        "transforms": transforms,
         "unmerged": [
             {
                 "robot": f["robot"],
@@ -43,7 +56,7 @@ def map_document(db) -> dict:
         "pairs": sorted(states.values(), key=lambda s: (s["robot_a"], s["robot_b"])),
         "overlaps": graph,
         "worker": read_worker(db),
-    }
+    } | ({"fleet_graph": solved["summary"]} if solved is not None else {})
 
 
 def unmerged_reason(robot: dict, states: dict, graph: list[dict], placed: dict) -> str:

@@ -12,6 +12,7 @@ from collections import OrderedDict
 import numpy as np
 
 from fleetmap.extract_pool import CLOUD_MAX_DEPTH_M, CLOUD_STRIDE  # as `fleetmap merge`
+from fleetmap.fleet.live_graph import stored_corrections
 from fleetmap.fleet.types import transform_from_json
 from fleetmap.geometry import apply, pose_to_tum
 
@@ -101,7 +102,7 @@ class MapRenderer:
         """Points in the reference frame, colours (uint8 RGB) and robot index (the order of
         `m["robots"]`) of every placed robot, voxelised at `voxel` per robot (coarser past
         MAX_CLOUD_POINTS in all); the last answer is kept while the map is unchanged."""
-        key = (m["version"], tuple(f["views"] for f in m["fleet"]), voxel)
+        key = (m["version"], tuple(f["views"] for f in m["fleet"]), voxel, _solved(m))
         with self._lock:
             if self._cloud is not None and self._cloud[0] == key:
                 return self._cloud[1]
@@ -112,11 +113,13 @@ class MapRenderer:
             while voxel < 1.0 and total > MAX_CLOUD_POINTS * (voxel / BASE_VOXEL_M) ** 2:
                 voxel *= 2  # a voxel twice as large keeps about a quarter of a surface
             pts, cols, idx = [], [], []
+            corrected = stored_corrections(self.db, m["version"])[0]
             for k, r in placed:
                 p, c = clouds[r]
                 if len(p) and voxel > BASE_VOXEL_M:
                     p, c = _voxelised(p, c, voxel)
-                pts.append(apply(transform_from_json(m["transforms"][r]), p))
+                warp = corrected[r].warp if r in corrected else None
+                pts.append(warp(p) if warp else apply(transform_from_json(m["transforms"][r]), p))
                 cols.append(c)
                 idx.append(np.full(len(p), k, np.uint16))
             out = _joined(pts, cols, idx)
@@ -125,15 +128,18 @@ class MapRenderer:
 
     def trajectories(self, m: dict) -> dict[str, list[list[float]]]:
         """Each placed robot's keyframe poses in the reference frame: [stamp, tx, ty, tz,
-        qx, qy, qz, qw] rows (TUM order), in time order."""
+        qx, qy, qz, qw] rows (TUM order), in time order; drift-corrected where the
+        keyframe graph solved on this placement corrects the robot."""
         out = {}
+        corrected = stored_corrections(self.db, m["version"])[0]
         for r, T in m["transforms"].items():
             T_ref_r = transform_from_json(T)
+            place = corrected[r].pose if r in corrected else lambda _, P, T=T_ref_r: T @ P
             rows = []
             for kf in self.db.keyframe_ids(r):
                 stamp, P = self.pose(kf)
                 if P is not None:
-                    rows.append([stamp, *pose_to_tum(T_ref_r @ P).tolist()])
+                    rows.append([stamp, *pose_to_tum(place(stamp, P)).tolist()])
             out[r] = rows
         return out
 
@@ -146,7 +152,7 @@ class MapRenderer:
         from fleetmap import pictures
         from fleetmap.mapcloud import ROBOT_COLOURS
 
-        key = (m["version"], tuple(f["views"] for f in m["fleet"]))
+        key = (m["version"], tuple(f["views"] for f in m["fleet"]), _solved(m))
         if self._overview is not None and self._overview[0] == key:
             return self._overview[1]
         pts, _, idx = self.cloud(m, 0.05)
@@ -170,6 +176,11 @@ class MapRenderer:
             )
         self._overview = (key, buf.getvalue()) if self.complete else None
         return buf.getvalue()
+
+
+def _solved(m: dict) -> float | None:
+    """When the keyframe graph the map document shows was solved (None: not yet)."""
+    return m.get("fleet_graph", {}).get("solved_at")
 
 
 def _empty_picture(buf, m: dict) -> None:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
+from fleetmap.fleet.live_graph import LiveGraph
 from fleetmap.fleet.merge_rules import (
     copier_robots,
     due_order,
@@ -82,6 +83,9 @@ class LiveParams:
     failure_backoff_s: float = 10.0  # after the aligner could not be reached
     parallel: int = 2  # pairs aligned at once (the aligner serves two requests at a time)
     settle_s: float = 5.0  # no keyframe for this long: merged pairs get a last fit
+    correct_drift: bool = True  # the keyframe graph over the placed robots (issue 22)
+    graph_budget_s: float = 1.0  # closures judged per idle step of the worker at most
+    graph_interval_s: float = 5.0  # between the graph's steps on an unchanged placement
 
 
 class LiveMap:
@@ -103,6 +107,9 @@ class LiveMap:
         self._leading = True  # False once the store's lock was lost: nothing is stored
         self._same: dict[tuple[int, int], bool] = {}  # keyframe pair -> one picture twice
         self.copiers: dict[str, str] = {}  # robot -> why its keyframes are no evidence
+        self.graph = LiveGraph(
+            db, budget_s=self.params.graph_budget_s, interval_s=self.params.graph_interval_s
+        )
 
     # --- the worker thread --------------------------------------------------------------
 
@@ -156,6 +163,7 @@ class LiveMap:
                 self._note(flying, len(due))
                 if not flying:
                     self._place_new_robots(states)
+                    self._correct(states)
                 wait(list(flying.values()) or [Future()], self.params.poll_s, FIRST_COMPLETED)
 
     def _next(self, due: list, flying: dict) -> list:
@@ -226,13 +234,24 @@ class LiveMap:
             self.place(states)
             self._robots_placed = robots
 
+    def _correct(self, states: dict) -> None:
+        """A step of the keyframe graph while no pair is aligning (`LiveGraph.step`)."""
+        if not self.params.correct_drift or not self._leading:
+            return
+        try:
+            self.graph.step(read_placement(self.db), states)
+        except FleetmapError as exc:  # a robot deleted meanwhile: the next step starts anew
+            log.info("live map: keyframe graph step skipped: %s", exc)
+
     def tick(self) -> bool:
         """One step in the caller's thread: align the most useful pair with new evidence
-        and place the fleet again; True if a pair was aligned."""
+        and place the fleet again; True if a pair was aligned (else a step of the keyframe
+        graph was taken)."""
         states = load_states(self.db)
         due = self.due_pairs(states)
         if not due:
             self._place_new_robots(states)
+            self._correct(states)
             return False
         a, b, overlaps = due[0]
         st = self.attempt(a, b, overlaps, states.get(pair_key(a, b)))

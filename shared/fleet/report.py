@@ -154,13 +154,17 @@ def graph_of(overlaps: list[dict]) -> list[dict]:
     ]
 
 
+#: A robot's keys in `fleetmap map`'s report (as `GET /map` gives them).
+LIVE_ROBOT_KEYS = ("keyframes", "views", "state", "drift_correction")
+
+
 def live_report(m: dict, place_db: str, overlaps: list[dict], edges: dict, voxel_m: float):
     """`fleetmap map`'s report from the live map `m` (`GET /map`), the overlap items of its
     robot pairs, the edges between placed robots and the cloud's voxel size."""
     return build_report(
         reference=m["reference"],
         source={"job": "map", "place_db": place_db, "live_map_version": m["version"]},
-        robots={f["robot"]: {k: f[k] for k in ("keyframes", "views", "state")} for f in m["fleet"]},
+        robots={f["robot"]: {k: f[k] for k in LIVE_ROBOT_KEYS if k in f} for f in m["fleet"]},
         transforms=m["transforms"],
         overlaps=overlaps,
         overlap_graph=m["overlaps"],

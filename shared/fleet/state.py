@@ -2,7 +2,8 @@
 `PlaceDB` (`fleetmap.place.fleet_access`) or, inside the place database, its `Store`.
 
 Two rows matter: "pairs" (the merge worker's `PairState`s, JSON keyed "A|B") and "map" (the
-`Placement`). Every change of the pair states is a compare-and-set (`update_states`): a
+`Placement`); "graph" (the keyframe graph's solution) holds for the "map" version it
+names. Every change of the pair states is a compare-and-set (`update_states`): a
 replica that lost its lock, or a state computed before a robot was deleted, cannot write
 over a newer one. Deleting a robot forgets what was derived from it in the store's delete
 transaction (`forget_robot`), so a robot id that comes back starts fresh.
@@ -34,6 +35,17 @@ def read_placement(store) -> Placement:
 
 def write_placement(store, placement: Placement) -> None:
     store.live_put("map", json.dumps(placement.to_json()))
+
+
+def read_graph(store) -> dict | None:
+    """The live map's keyframe graph solution (`fleetmap.fleet.live_graph.graph_row`), or
+    None before the first."""
+    raw = store.live_get("graph")
+    return None if raw is None else json.loads(raw)
+
+
+def write_graph(store, row: dict) -> None:
+    store.live_put("graph", json.dumps(row))
 
 
 def read_worker(store) -> dict | None:

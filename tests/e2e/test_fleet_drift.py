@@ -172,3 +172,56 @@ def test_bent_maps_merge_from_overlaps_that_once_refused(drifted):
     T_local = Ta @ invert(truth["A"][ia]) @ truth["B"][ib] @ invert(Tb)
     pb = np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
     assert displacement_rms(res.T_a_b, T_local, pb) < 0.15
+
+
+def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
+    """The live map's keyframe graph (`LiveGraph`, stepped by the merge worker when idle)
+    corrects the same bent maps posted with their views: `GET /map`'s trajectories as far
+    under the rigid floor as the batch merge's, the correction reported per robot, and
+    the cloud drawn from the corrected keyframes."""
+    from fleetmap.dataset import load_depth, load_rgb
+    from fleetmap.fleet.live_graph import LiveGraph
+    from fleetmap.fleet.map_document import map_document
+    from fleetmap.fleet.map_render import MapRenderer
+    from fleetmap.fleet.state import load_states, read_placement, update_states, write_placement
+    from fleetmap.fleet.types import Placement, pair_key
+    from fleetmap.frame import encode
+    from fleetmap.place.db import PlaceDB
+    from fleetmap.view import encode_view
+
+    dirs, truth, _, report = drifted[:4]
+    kfs, true_kf = keyframes
+    db = PlaceDB(tmp_path / "live.sqlite", vocabulary)
+    try:
+        for r in "AB":
+            frames = read_recording(dirs[r]).frames
+            for kf in kfs[r]:
+                f = frames[kf.index]
+                view = encode_view(load_rgb(f.rgb_path), load_depth(f.depth_path))
+                db.add_keyframe(r, encode(kf.frame), view)
+        assert db.wait_idle(300)
+        fit = report["fits"][0]  # the pair as the merge worker would have stored it
+        state = {"robot_a": "A", "robot_b": "B", "status": "merged", "inliers": fit["inliers"]}
+        state["transform"] = fit["transform"]
+        update_states(db, lambda s: s.__setitem__(pair_key("A", "B"), state))
+        B = np.array(report["robots"]["B"]["drift_correction"]["rigid_placement"])
+        write_placement(db, Placement("A", {"A": np.eye(4), "B": B}, version=1))
+        graph = LiveGraph(db, budget_s=600.0, interval_s=0.0)
+        assert graph.step(read_placement(db), load_states(db))
+        m = map_document(db)
+        tracks = MapRenderer(db).trajectories(m)
+        est = np.concatenate([np.array(tracks[r])[:, 1:4] for r in "AB"])
+        true = np.concatenate([true_kf[r][:, :3, 3] for r in "AB"])
+        own = {r: np.stack([kf.frame.T_map_cam[:3, 3] for kf in kfs[r]]) for r in "AB"}
+        sq = [(apply(kabsch(own[r], true_kf[r][:, :3, 3]), own[r]) - true_kf[r][:, :3, 3]) ** 2
+              for r in "AB"]  # fmt: skip
+        floor = float(np.sqrt(np.concatenate(sq).sum(1).mean()))
+        assert rmse_aligned(est, true) < 0.55 * floor, (rmse_aligned(est, true), floor)
+        for f in m["fleet"]:
+            assert f["drift_correction"]["applied"] and f["drift_correction"]["moved_max_m"] > 0.05
+        assert m["fleet_graph"]["closures"]["depth"] > 0  # refined against the stored views
+        pts, _, idx = MapRenderer(db).cloud(m, 0.05)
+        assert len(pts) and set(np.unique(idx)) == {0, 1}
+        assert not graph.step(read_placement(db), load_states(db))  # nothing new: no solve
+    finally:
+        db.close()
