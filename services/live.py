@@ -120,7 +120,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
 def cmd_map(args: argparse.Namespace) -> int:
     """Write the live map's files: what `fleetmap merge` writes."""
-    from fleetmap.client import PlaceDBClient
+    from fleetmap.client import PlaceDBClient, services_config
     from fleetmap.fleet.map_render import BASE_VOXEL_M
 
     out = Path(args.out)
@@ -136,7 +136,8 @@ def cmd_map(args: argparse.Namespace) -> int:
         tracks = client.map_trajectories()
         lines = json.loads(client.map_file("lines"))["overlaps"]
         overlaps = overlap_items(client, m)
-    files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel)
+        served = services_config(place_db=client)["place_db"]
+    files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel, served)
     write_live_outputs(out, m, files, args.place_db, time.perf_counter() - t0)
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
@@ -152,7 +153,8 @@ def cmd_map(args: argparse.Namespace) -> int:
 class LiveFiles:
     """What `fleetmap map` fetched besides `GET /map`: the cloud (PLY bytes, at `voxel_m`),
     the overview (PNG bytes), the keyframe trajectories, the overlap lines (`GET
-    /map/lines`) and the overlap items of the map's robot pairs (`GET /overlaps`)."""
+    /map/lines`), the overlap items of the map's robot pairs (`GET /overlaps`) and the place
+    database's parameters in force (`GET /config`)."""
 
     cloud: bytes
     picture: bytes
@@ -160,6 +162,7 @@ class LiveFiles:
     lines: list | None
     overlaps: list[dict]
     voxel_m: float
+    served: dict | None = None
 
 
 def overlap_items(client, m: dict) -> list[dict]:
@@ -200,7 +203,10 @@ def write_live_outputs(out: Path, m: dict, files: LiveFiles, source: str, second
         for e in m["overlaps"]
         for _ in range(e["pairs"])
     ]
-    report = live_report(m, source.split(",")[0], files.overlaps, edges, files.voxel_m)
+    from fleetmap.services.schemas import redact_url
+
+    place_db = redact_url(source.split(",")[0])  # a password in the URL stays out
+    report = live_report(m, place_db, files.overlaps, edges, files.voxel_m, files.served)
     if "fleet_graph" in m:  # the live map's keyframe graph, as `fleetmap merge` reports it
         report["fleet_graph"] = m["fleet_graph"]
     report["timing_s"] = {"total": round(seconds, 3)}

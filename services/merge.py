@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from fleetmap.client import AlignerClient, PlaceDBClient
+from fleetmap.client import AlignerClient, PlaceDBClient, services_config
 from fleetmap.dataset import Recording
 from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
@@ -98,7 +98,7 @@ def run_merge(
             drawing = write_maps(out, recs, kf_index, clouds, placed, edges, params, fleet)
         with timed(timing, "links"):
             overlaps += link_overlaps(db, edges, fits, links)
-    in_force = merge_parameters(params, vocab_path)
+        in_force = merge_parameters(params, vocab_path, services_config(place_db=db, aligner=al))
     report = merge_report(recs, kf_index, placement, overlaps, fits, edges, in_force)
     if fleet is not None:
         add_fleet_report(report, fleet)

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 import httpx
 
-from fleetmap.errors import BadInput, Unavailable
+from fleetmap.errors import BadInput, FleetmapError, Unavailable
 from fleetmap.frame import Frame, encode
 from fleetmap.wire import ALIGN_META, ServiceError, error_from, view_part
 
 OCTET = {"content-type": "application/octet-stream"}
+log = logging.getLogger(__name__)
 
 
 def _raise_for(resp: httpx.Response) -> httpx.Response:
@@ -88,6 +90,10 @@ class _Client:
 
     def health(self, retry: bool = True) -> dict:
         return self._call("GET", "/healthz", retry=retry).json()
+
+    def config(self) -> dict:
+        """The service's parameters in force (`GET /config`: its settings, no secrets)."""
+        return self._call("GET", "/config").json()
 
     def wait_ready(self, timeout: float = 30.0, alive=None, poll_s: float = 0.1) -> None:
         """Until /healthz answers; Unavailable after `timeout`, or at once when `alive()`
@@ -245,3 +251,17 @@ class AlignerClient(_Client):
 
     def cloud(self, cloud_id: str) -> bytes:
         return self._call("GET", f"/clouds/{cloud_id}").content
+
+
+def services_config(**clients: _Client) -> dict:
+    """Each service's parameters in force (its `GET /config`), by name, for report.json; a
+    service that would not say (an older one, a token without the right) is recorded with
+    why, `{"unavailable": ...}`, and logged: never fatal to the job that asked."""
+    out = {}
+    for name, client in clients.items():
+        try:
+            out[name] = client.config()
+        except FleetmapError as exc:
+            log.warning("%s's parameters not recorded: %s", name, exc)
+            out[name] = {"unavailable": str(exc)}
+    return out

@@ -33,6 +33,14 @@ def healthz(clouds: Clouds) -> s.Health:
     return s.Health(status="ok", clouds_cached=len(clouds))
 
 
+@router.get("/config", response_model=s.CONFIG.model, dependencies=[Depends(require_token)])
+def config(settings: AlignerSettings):
+    """The parameters in force: the settings as resolved from their defaults and the
+    `FLEETMAP_ALIGNER_*` variables (the alignment's gate and ICP, the limits), nested as
+    they are; tokens left out."""
+    return s.CONFIG.answer(settings)
+
+
 def align_answer(
     pairs, name: str, p: AlignParams, want_cloud: bool, colour: str
 ) -> tuple[dict, tuple[bytes, int] | None]:

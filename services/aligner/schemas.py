@@ -19,7 +19,11 @@ from typing import Literal
 from pydantic import BaseModel, Field, model_validator
 
 from fleetmap.align.methods import METHODS
-from fleetmap.services.schemas import Matrix4
+from fleetmap.services.aligner.config import Settings
+from fleetmap.services.schemas import ConfigView, Matrix4
+
+#: `GET /config`: the settings in force, tokens left out.
+CONFIG = ConfigView(Settings, "AlignerConfig")
 
 
 class IntrinsicsIn(BaseModel):

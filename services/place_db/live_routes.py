@@ -34,7 +34,7 @@ async def run_in_map_pool(request: Request, fn, *args):
 @router.get(
     "/map",
     response_model=s.LiveMap,
-    response_model_exclude_none=True,
+    response_model_exclude_unset=True,  # null `reference` stays; absent extras stay absent
     dependencies=[Depends(require_operator)],
 )
 async def live_map(db: Database) -> s.LiveMap:

@@ -328,6 +328,14 @@ def stats(db: Database) -> dict:
     return db.stats()
 
 
+@router.get("/config", response_model=s.CONFIG.model, dependencies=[Depends(require_operator)])
+def config(settings: PlaceSettings):
+    """The parameters in force: the settings as resolved from their defaults and the
+    `FLEETMAP_PLACE_DB_*` variables (the cascade's, the live map's...), nested as they are;
+    tokens left out, the database's and the aligner's URLs without their passwords."""
+    return s.CONFIG.answer(settings)
+
+
 @router.post("/admin/retrain", response_model=s.Retrained, dependencies=[Depends(require_operator)])
 def retrain(db: Database, clusters: int | None = Query(None, ge=2, le=65536)) -> s.Retrained:
     """Retrain the coarse GIST codebook from the stored keyframes; no downtime."""

@@ -8,7 +8,12 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from fleetmap.services.schemas import Matrix4
+from fleetmap.services.place_db.config import Settings
+from fleetmap.services.schemas import ConfigView, Matrix4
+
+#: `GET /config`: the settings in force, tokens left out, the database's and the aligner's
+#: URLs without their passwords.
+CONFIG = ConfigView(Settings, "PlaceDBConfig", urls=("database", "aligner"))
 
 
 class Health(BaseModel):

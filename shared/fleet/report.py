@@ -18,7 +18,9 @@ and 6), so both write the same keys:
 - `unmerged`: the robots not placed, `unmerged_reasons`: robot -> why;
 - `pose_graph`: {"edges": the fits the placement used, "optimised": whether the pose graph
   reconciled cycles (None: the live map does not say)};
-- `parameters`: every parameter of the command in force;
+- `parameters`: every parameter of the command in force; with the services' own (their
+  `GET /config`: settings, no secrets) under `place_db` (merge and map) and `aligner`
+  (merge), or `{"unavailable": why}` where a service would not say;
 - `updated_at`: unix time of the placement;
 - `timing_s`: seconds per stage (the command adds it last); with `merge --correct-drift`
   also `fleet_graph` and per robot `drift_correction`.
@@ -105,9 +107,10 @@ def merge_report(recs, kf_index, placement: Placement, overlaps, fits: list[Fit]
     )
 
 
-def merge_parameters(params: MergeParams, vocab_path) -> dict:
+def merge_parameters(params: MergeParams, vocab_path, services: dict | None = None) -> dict:
     """`merge`'s parameters in force: its own (`MergeParams`), the vocabulary, the
-    aligner's method and the placement's cycle tolerances (and the drift correction's)."""
+    aligner's method and the placement's cycle tolerances (and the drift correction's);
+    `services`: the services' own, {"place_db": its `GET /config`, "aligner": ...}."""
     from fleetmap.fleet.correct import CorrectionParams
 
     out = {
@@ -123,7 +126,7 @@ def merge_parameters(params: MergeParams, vocab_path) -> dict:
     }
     if params.correct_drift:
         out["drift_correction"] = dataclasses.asdict(CorrectionParams())
-    return out
+    return out | (services or {})
 
 
 def merge_unmerged_reason(robot: str, placement: Placement, fits: list[Fit]) -> str:
@@ -158,9 +161,12 @@ def graph_of(overlaps: list[dict]) -> list[dict]:
 LIVE_ROBOT_KEYS = ("keyframes", "views", "state", "drift_correction")
 
 
-def live_report(m: dict, place_db: str, overlaps: list[dict], edges: dict, voxel_m: float):
+def live_report(
+    m: dict, place_db: str, overlaps: list[dict], edges: dict, voxel_m: float, served=None
+):
     """`fleetmap map`'s report from the live map `m` (`GET /map`), the overlap items of its
-    robot pairs, the edges between placed robots and the cloud's voxel size."""
+    robot pairs, the edges between placed robots, the cloud's voxel size and `served`: the
+    place database's parameters in force (its `GET /config`)."""
     return build_report(
         reference=m["reference"],
         source={"job": "map", "place_db": place_db, "live_map_version": m["version"]},
@@ -171,6 +177,6 @@ def live_report(m: dict, place_db: str, overlaps: list[dict], edges: dict, voxel
         fits=m["pairs"],
         unmerged_reasons={u["robot"]: u["reason"] for u in m["unmerged"]},
         pose_graph={"edges": len(edges), "optimised": None},
-        parameters={"voxel_m": voxel_m},
+        parameters={"voxel_m": voxel_m} | ({} if served is None else {"place_db": served}),
         updated_at=m["updated_at"],
     )
