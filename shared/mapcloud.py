@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetmap.camera import depth_to_points
-from fleetmap.geometry import apply
+from fleetmap.geometry import apply, invert
 from fleetmap.lazy import LazyModule
 
 o3d = LazyModule("open3d")
@@ -216,7 +216,7 @@ class SeenDepth:
 
     def __init__(self, view):
         self.intrinsics = view.intrinsics
-        self.T_cam_map = np.linalg.inv(view.T_map_cam)
+        self.T_cam_map = invert(view.T_map_cam)
         self.depth = view.depth.astype(np.float32) / np.float32(view.intrinsics.depth_scale)
         self._nearest = {0: np.where(self.depth > 0, self.depth, np.float32(np.inf))}
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from fleetmap.errors import StorageCorrupt, UnknownKeyframe
 from fleetmap.frame import Frame
+from fleetmap.geometry import invert
 from fleetmap.matching import verify_pair
 from fleetmap.place.index import PlaceIndex
 from fleetmap.place.types import (
@@ -128,7 +129,7 @@ class CovisTarget:
         from scipy.spatial import cKDTree
 
         self.K = target.intrinsics
-        self.cam = np.linalg.inv(target.T_map_cam)
+        self.cam = invert(target.T_map_cam)
         pa = target.points[target.point_valid].astype(np.float64)
         pa = pa @ self.cam[:3, :3].T + self.cam[:3, 3]
         pa = pa[pa[:, 2] > 0.1]
