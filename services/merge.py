@@ -92,12 +92,12 @@ def run_merge(
         with timed(timing, "outputs"):
             placement, edges = placed_fleet(ids, edges)
         placed, drift = placement.T_ref, params.correct_drift
+        with timed(timing, "links"):  # the keyframe graph's depth closures are at the links
+            overlaps += link_overlaps(db, edges, fits, links)
         with timed(timing, "fleet_graph"):
             fleet = correct_fleet(parts, placed, edges, overlaps, ids[0]) if drift else None
         with timed(timing, "outputs"):
             drawing = write_maps(out, recs, kf_index, clouds, placed, edges, params, fleet)
-        with timed(timing, "links"):
-            overlaps += link_overlaps(db, edges, fits, links)
         in_force = merge_parameters(params, vocab_path, services_config(place_db=db, aligner=al))
     report = merge_report(recs, kf_index, placement, overlaps, fits, edges, in_force)
     if fleet is not None:

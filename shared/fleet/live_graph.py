@@ -27,6 +27,7 @@ from fleetmap.fleet.correct import (
     FleetCorrection,
     bends,
     correct_fleet,
+    fit_closures,
     rigid_fleet,
     unbendable,
     with_fit_closures,
@@ -74,6 +75,7 @@ class LiveGraph:
         self._frames: dict[int, Frame | None] = {}  # keyframe id -> frame (None: no pose)
         self._judged: dict[tuple[int, int], Closure | None] = {}  # ids (a, b) -> closure
         self._refined: dict[tuple[int, int], Closure] = {}
+        self._linked: dict[tuple, np.ndarray | None] = {}  # (ids, the fit) -> ICP's pose
         self._solved: tuple | None = None
 
     def step(self, placement: Placement, states: dict) -> bool:
@@ -121,10 +123,14 @@ class LiveGraph:
         )  # fmt: skip
         if not bends(fleet, self.params):
             return fleet
-        if not self._refine(kfs, index, deadline):
+        links = (
+            self._links(kfs, poses, edges, deadline) if self._refine(kfs, index, deadline) else None
+        )
+        if links is None:
             return None
         present = self._present(index)
         refined = [self._indexed(self._refined.get(self._key(c), c), index) for c in present]
+        refined += links
         return correct_fleet(
             kfs, placed, edges, [], ref, self.params,
             closures=with_fit_closures(refined, overlap_pairs, poses, edges),
@@ -192,12 +198,45 @@ class LiveGraph:
                 return False
             self._refined[p] = c
             if p[0] in viewed and p[1] in viewed:
-                one = {"a": [StoredKeyframe(self.db, p[0], self._frames[p[0]])]}
-                one["b"] = [StoredKeyframe(self.db, p[1], self._frames[p[1]])]
-                trial = dataclasses.replace(c, robot_a="a", i=0, robot_b="b", j=0)
-                done = refine_with_depth([trial], one, self.params.closure)[0]
+                done = self._icp(p, c, self.params.closure)
                 self._refined[p] = dataclasses.replace(c, T_a_b=done.T_a_b, source=done.source)
         return True
+
+    def _icp(self, p: tuple[int, int], c: Closure, params) -> Closure:
+        """Closure `c` between keyframes p refined against their stored views' depth."""
+        one = {"a": [StoredKeyframe(self.db, p[0], self._frames[p[0]])]}
+        one["b"] = [StoredKeyframe(self.db, p[1], self._frames[p[1]])]
+        trial = dataclasses.replace(c, robot_a="a", i=0, robot_b="b", j=0)
+        return refine_with_depth([trial], one, params)[0]
+
+    def _links(self, kfs: dict, poses: dict, edges: dict, deadline: float) -> list | None:
+        """The depth closures at the keyframe pairs co-visible under the robots' fits (as
+        `fleetmap.fleet.correct.link_closures`), each tried once per fit; None while some
+        are left at the deadline."""
+        index = {k.kf_id: (r, i) for r, v in kfs.items() for i, k in enumerate(v)}
+        viewed = {k for r in kfs for k in self.db.view_ids(r)}
+        pairs, robots = set(), sorted(kfs)
+        for x, a in enumerate(robots):
+            for b in robots[x + 1 :]:
+                for o in self.db.overlaps(a, b):
+                    if o.source == "link" and {o.kf_a, o.kf_b} <= viewed:
+                        if o.kf_a in index and o.kf_b in index:
+                            pairs.add((*index[o.kf_a], *index[o.kf_b]))
+        fits, cp = fit_closures(sorted(pairs), poses, edges), self.params.closure
+        if len(fits) > cp.max_links:
+            fits = [fits[k] for k in np.linspace(0, len(fits) - 1, cp.max_links).astype(int)]
+        icp, out = dataclasses.replace(cp, tol_m=cp.link_tol_m), []
+        for c in fits:
+            ids = (kfs[c.robot_a][c.i].kf_id, kfs[c.robot_b][c.j].kf_id)
+            key = (*ids, np.round(c.T_a_b, 3).tobytes())
+            if key not in self._linked:
+                if time.monotonic() > deadline:
+                    return None
+                done = self._icp(ids, dataclasses.replace(c, source="features"), icp)
+                self._linked[key] = done.T_a_b if done.source == "depth" else None
+            if self._linked[key] is not None:
+                out.append(dataclasses.replace(c, T_a_b=self._linked[key], source="depth"))
+        return out
 
     def _present(self, index: dict) -> list[Closure]:
         """The verified closures between keyframes of the present graph."""
