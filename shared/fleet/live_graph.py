@@ -106,6 +106,10 @@ class LiveGraph:
         log.info("live map: keyframe graph of %d robots solved %s", len(ids), fleet.summary())
         return True
 
+    def hold(self, version: int) -> None:
+        """No step on this placement for `interval_s` (after a step failed)."""
+        self._last = (version, time.monotonic())
+
     def _solve(self, kfs: dict, placement: Placement, edges: dict, deadline: float):
         """The corrected fleet, or None while candidates or refinements are left."""
         placed, ref = placement.T_ref, placement.reference

@@ -238,10 +238,14 @@ class LiveMap:
         """A step of the keyframe graph while no pair is aligning (`LiveGraph.step`)."""
         if not self.params.correct_drift or not self._leading:
             return
+        placement = read_placement(self.db)
         try:
-            self.graph.step(read_placement(self.db), states)
+            self.graph.step(placement, states)
         except FleetmapError as exc:  # a robot deleted meanwhile: the next step starts anew
             log.info("live map: keyframe graph step skipped: %s", exc)
+        except Exception:  # never the merging's failure: tried again after the interval
+            log.exception("live map: keyframe graph step failed")
+            self.graph.hold(placement.version)
 
     def tick(self) -> bool:
         """One step in the caller's thread: align the most useful pair with new evidence
