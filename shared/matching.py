@@ -82,13 +82,28 @@ def match_descriptors_at(
     S[rows, best] = s1
     S += nb[None, :]
     S -= na[:, None]
-    mutual = S.argmax(0)[best] == rows
+    mutual = mutual_best(S, rows, best)
     d_best, d_second = np.maximum(na - s1, 0), np.maximum(na - s2, 0)
     out = []
     for ratio in ratios:
         ia = np.flatnonzero((d_best < (ratio**2) * d_second) & mutual)
         out.append((ia, best[ia]))
     return out
+
+
+def mutual_best(S: np.ndarray, rows: np.ndarray, best: np.ndarray) -> np.ndarray:
+    """Whether row i is also column best[i]'s best row (`S.argmax(0)[best] == rows`)
+    from the columns' maxima: numpy's argmax down the columns of a row-major matrix took
+    66 of a 3,600 x 3,600 matching's 160 ms (17-18 % of the second look's samples), the
+    maxima 3 ms. Where rows tie on a column's maximum (integer descriptors give integer
+    distances), the first row stands, as argmax's: looked up in those columns only."""
+    top = S.max(0)
+    mutual = S[rows, best] >= top[best]
+    cand = np.flatnonzero(mutual)
+    cols = best[cand]
+    first = (np.take(S, cols, axis=1) == top[cols]).argmax(0)
+    mutual[cand] = first == cand
+    return mutual
 
 
 def verify_pair(
