@@ -14,6 +14,13 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.cpu_times import (  # noqa: F401 (the hooks: tests/cpu_times.py)
+    pytest_addoption,
+    pytest_runtest_logreport,
+    pytest_runtest_makereport,
+    pytest_runtest_setup,
+    pytest_terminal_summary,
+)
 from tests.scheduling import (  # noqa: F401 (the hooks: tests/scheduling.py)
     pytest_collection_modifyitems,
     pytest_xdist_make_scheduler,
