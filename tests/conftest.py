@@ -14,6 +14,14 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.cpu_times import (  # noqa: F401 (the hooks: tests/cpu_times.py)
+    pytest_addoption,
+    pytest_runtest_logreport,
+    pytest_runtest_makereport,
+    pytest_runtest_setup,
+    pytest_terminal_summary,
+)
+from tests.helpers import built_once
 from tests.scheduling import (  # noqa: F401 (the hooks: tests/scheduling.py)
     pytest_collection_modifyitems,
     pytest_xdist_make_scheduler,
@@ -179,16 +187,26 @@ def textured_image(seed: int, h: int = 240, w: int = 320) -> np.ndarray:
 
 
 @pytest.fixture(scope="session")
-def fleet_frames(vocabulary):
-    """8 robots x 25 encoded frames of distinct textured views: {robot: [bytes]}."""
+def fleet_frames(vocabulary, tmp_path_factory):
+    """8 robots x 25 encoded frames of distinct textured views: {robot: [bytes]} (9 s of CPU:
+    extracted once per run, `built_once`)."""
+    import pickle
+
     from fleetmap.extract import FrameExtractor
     from fleetmap.frame import encode
 
-    x = FrameExtractor(vocabulary)
-    return {
-        f"r{k}": [encode(x(f"r{k}", 100.0 + i, textured_image(1000 * k + i))) for i in range(25)]
-        for k in range(8)
-    }
+    def build(folder: Path) -> None:
+        x = FrameExtractor(vocabulary)
+        frames = {
+            f"r{k}": [
+                encode(x(f"r{k}", 100.0 + i, textured_image(1000 * k + i))) for i in range(25)
+            ]
+            for k in range(8)
+        }
+        (folder / "frames.pickle").write_bytes(pickle.dumps(frames))
+
+    folder = built_once(tmp_path_factory, "fleet_frames", build)
+    return pickle.loads((folder / "frames.pickle").read_bytes())
 
 
 def random_frame(seed: int) -> np.ndarray:
@@ -315,8 +333,10 @@ def sim_fleet(tmp_path_factory) -> tuple[Path, dict]:
 
     from fleetmap.services.cli import main
 
-    sim = tmp_path_factory.mktemp("fleet")
-    assert main(["-q", "simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
+    def build(sim: Path) -> None:  # 13 s of CPU: once per run (`built_once`)
+        assert main(["-q", "simulate", str(sim), "--robots", "3", "--frames", "12"]) == 0
+
+    sim = built_once(tmp_path_factory, "sim_fleet", build)
     return sim, json.loads((sim / "T_true.json").read_text())
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import httpx
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -9,6 +11,29 @@ from scipy.spatial.transform import Rotation
 from fleetmap.frame import Frame
 
 OCTET = {"content-type": "application/octet-stream"}
+
+
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """The folder `name` in this run's temporary root, shared by its xdist workers: built by
+    `build(folder)` for the first worker to ask (the others wait for it, under a lock), then
+    read by all (a session fixture's data, built once per run, not once per worker). A run
+    without xdist builds it in its own temporary folder."""
+    import fcntl
+    import os
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # pytest-N: this run's, with the workers' own folders in it
+    folder, done = base / f"shared-{name}", base / f"shared-{name}.done"
+    with (base / f"shared-{name}.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.touch()
+    return folder
 
 
 def make_frame(**kw) -> Frame:

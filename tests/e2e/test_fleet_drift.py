@@ -48,11 +48,9 @@ class _Kept:
 
 
 @pytest.fixture(scope="module")
-def drifted(hololens, tmp_path_factory):
-    """Drifted copies of hl_a and hl_b, their true poses (in hl_a's map frame, per frame of
-    the copy), the merge of the copies and the keyframes it extracted."""
-    from fleetmap.services import merge as merge_job
-
+def drifted_copies(hololens, tmp_path_factory):
+    """Drifted copies of hl_a and hl_b (images hard-linked: cheap) and their true poses (in
+    hl_a's map frame, per frame of the copy)."""
     tmp = tmp_path_factory.mktemp("drift")
     T_a_b = np.loadtxt(hololens / "T_a_b.txt")
     truth, dirs = {}, {}
@@ -60,7 +58,17 @@ def drifted(hololens, tmp_path_factory):
         dirs[r] = tmp / r
         true = write_drifted(hololens / name, dirs[r], 1.0, 0.01, seed=k)
         truth[r] = np.stack([T_ref @ T for T in true])
-    out, extracted = tmp / "out", []
+    return dirs, truth
+
+
+@pytest.fixture(scope="module")
+def drifted(drifted_copies, tmp_path_factory):
+    """The drifted copies (`drifted_copies`), the merge of the copies and the keyframes it
+    extracted."""
+    from fleetmap.services import merge as merge_job
+
+    dirs, truth = drifted_copies
+    out, extracted = tmp_path_factory.mktemp("drift_merge") / "out", []
     args = ["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out), "--correct-drift"]
     real = merge_job.extract_keyframes
     with pytest.MonkeyPatch.context() as mp:  # the merge's own extraction, not a second one
@@ -150,12 +158,13 @@ def test_without_drift_the_rigid_placement_stands(keyframes):
     assert fleet.summary()["closures"]["depth"] == 0
 
 
-def test_bent_maps_merge_from_overlaps_that_once_refused(drifted):
+def test_bent_maps_merge_from_overlaps_that_once_refused(drifted_copies):
     """Verified overlaps found in one CI run (the place database's order of arrival varies):
     coloured ICP slid the fit 0.22 m off every match and the gate refused ("0 inlier
     correspondences"). A refinement must keep the matches that proposed it, and matches
-    count as they agree with each other around the fit (`agreeing`)."""
-    dirs, truth = drifted[:2]
+    count as they agree with each other around the fit (`agreeing`). Needs the copies only,
+    not their merge: it runs apart from the module's other tests (tests/scheduling.py)."""
+    dirs, truth = drifted_copies
     recs = {r: read_recording(dirs[r], robot_id=r) for r in "AB"}
     ov = [
         {"stamp_a": a, "stamp_b": b, "inliers": n}
