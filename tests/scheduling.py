@@ -22,6 +22,7 @@ import pytest
 #: Modules whose tests share no module-scoped fixture: each test may run on either worker.
 PER_TEST = (
     "tests/e2e/test_merge.py",
+    "tests/e2e/test_merge_parameters.py",
     "tests/e2e/test_recall.py",
     "tests/e2e/test_sun3d_alignment.py",
     "tests/process/test_bags.py",
@@ -31,6 +32,9 @@ PER_TEST = (
 #: Tests of those modules that share a costly session fixture (named as the group).
 SHARED = {
     "tests/e2e/test_merge.py::test_merge_sun3d_pair_recovers_ground_truth": "sun3d_merge",
+    "tests/e2e/test_merge_parameters.py::test_merge_report_holds_both_services_parameters": (
+        "sun3d_merge"
+    ),
     "tests/process/test_bags.py::test_merge_with_a_ros2_bag_robot_gives_the_folder_transform": (
         "sun3d_merge"
     ),
