@@ -28,7 +28,7 @@ ERROR_RESPONSES = {
         400: "undecodable frame",
         401: "missing or unknown token",
         403: "a valid token without the right",
-        404: "unknown robot, keyframe or cloud",
+        404: "unknown robot or keyframe, or nothing solved yet",
         408: "the request body stalled",
         409: "conflicting re-send, or a robot deleted meanwhile",
         413: "body, image or pixel budget too large",

@@ -137,7 +137,8 @@ def cmd_map(args: argparse.Namespace) -> int:
         lines = json.loads(client.map_file("lines"))["overlaps"]
         overlaps = overlap_items(client, m)
         served = services_config(place_db=client)["place_db"]
-    files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel, served)
+        pose_graph = client.map_pose_graph()
+    files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel, served, pose_graph)
     write_live_outputs(out, m, files, args.place_db, time.perf_counter() - t0)
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
@@ -152,9 +153,10 @@ def cmd_map(args: argparse.Namespace) -> int:
 @dataclass
 class LiveFiles:
     """What `fleetmap map` fetched besides `GET /map`: the cloud (PLY bytes, at `voxel_m`),
-    the overview (PNG bytes), the keyframe trajectories, the overlap lines (`GET
-    /map/lines`), the overlap items of the map's robot pairs (`GET /overlaps`) and the place
-    database's parameters in force (`GET /config`)."""
+        the overview (PNG bytes), the keyframe trajectories, the overlap lines (`GET
+        /map/lines`), the overlap items of the map's robot pairs (`GET /overlaps`) and the place
+        database's parameters in force (`GET /config`) and the keyframe pose graph (g2o text, `GET
+    /map/pose_graph.g2o`; None where none is solved: the robots' graph is written instead)."""
 
     cloud: bytes
     picture: bytes
@@ -163,6 +165,7 @@ class LiveFiles:
     overlaps: list[dict]
     voxel_m: float
     served: dict | None = None
+    pose_graph: str | None = None
 
 
 def overlap_items(client, m: dict) -> list[dict]:
@@ -197,7 +200,10 @@ def write_live_outputs(out: Path, m: dict, files: LiveFiles, source: str, second
     names = ([m["reference"]] if m["reference"] else []) + [
         r for r in m["robots"] if r != m["reference"]
     ]
-    write_g2o(out / "pose_graph.g2o", names, T_ref, edges)
+    if files.pose_graph is not None:  # the keyframe graph, as `fleetmap merge` writes it
+        (out / "pose_graph.g2o").write_text(files.pose_graph)
+    else:
+        write_g2o(out / "pose_graph.g2o", names, T_ref, edges)
     pairs = [
         {"robot_a": e["robot_a"], "robot_b": e["robot_b"]}
         for e in m["overlaps"]

@@ -7,7 +7,7 @@ import time
 
 import httpx
 
-from fleetmap.errors import BadInput, FleetmapError, Unavailable
+from fleetmap.errors import BadInput, FleetmapError, NotSolved, Unavailable
 from fleetmap.frame import Frame, encode
 from fleetmap.wire import ALIGN_META, ServiceError, error_from, view_part
 
@@ -146,6 +146,14 @@ class PlaceDBClient(_Client):
     def map_file(self, name: str, **params) -> bytes:
         """cloud.ply (params: voxel) or overview.png of the live map."""
         return self._call("GET", f"/map/{name}", params=params, timeout=600).content
+
+    def map_pose_graph(self) -> str | None:
+        """The live map's keyframe graph as g2o text (`GET /map/pose_graph.g2o`); None
+        while none is solved on the current placement."""
+        try:
+            return self._call("GET", "/map/pose_graph.g2o", timeout=600).text
+        except NotSolved:
+            return None
 
     def map_trajectories(self) -> dict:
         return self._call("GET", "/map/trajectories", timeout=600).json()

@@ -38,6 +38,10 @@ class UnknownKeyframe(FleetmapError, KeyError):
         return str(self.args[0]) if self.args else "unknown keyframe"
 
 
+class NotSolved(FleetmapError, LookupError):
+    """Something the live map has not computed (yet) for its current placement."""
+
+
 class NotEnoughCorrespondences(FleetmapError):
     """Too few (inlier) correspondences to fit or verify a transform."""
 

@@ -21,6 +21,7 @@ STATUS: list[tuple[type[E.FleetmapError], int]] = [
     (E.BadFrame, 400),
     (E.UnknownRobot, 404),
     (E.UnknownKeyframe, 404),
+    (E.NotSolved, 404),
     (E.Conflict, 409),
     (E.NotEnoughCorrespondences, 422),
     (E.BadInput, 422),

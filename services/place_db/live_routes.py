@@ -10,8 +10,10 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from fastapi.responses import HTMLResponse
 from starlette.concurrency import run_in_threadpool
 
+from fleetmap.errors import NotSolved
 from fleetmap.fleet.map_document import map_document
 from fleetmap.fleet.map_render import BASE_VOXEL_M
+from fleetmap.fleet.state import read_graph_g2o, read_placement
 from fleetmap.mapcloud import ply_bytes
 from fleetmap.services.auth import require_operator
 from fleetmap.services.http_errors import ERROR_RESPONSES
@@ -95,6 +97,25 @@ async def map_trajectories(request: Request, db: Database, renderer: Renderer) -
         return renderer.trajectories(map_document(db))
 
     return await run_in_map_pool(request, build)
+
+
+@router.get(
+    "/map/pose_graph.g2o",
+    dependencies=[Depends(require_operator)],
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {}}}},
+)
+def map_pose_graph(db: Database) -> Response:
+    """The live map's keyframe pose graph in g2o's SE3 format (as `fleetmap merge` writes
+    pose_graph.g2o): one vertex per keyframe of every placed robot at its corrected pose,
+    odometry and the loop closures the robust solve kept. 404 until a graph has been solved
+    on the current placement (or where none is built: no robot's path long enough to bend,
+    or `correct_drift` off)."""
+    version = read_placement(db).version
+    text = read_graph_g2o(db, version)
+    if text is None:
+        raise NotSolved(f"no keyframe pose graph solved on the live map's placement {version}")
+    return Response(text, media_type="text/plain")
 
 
 @router.get(

@@ -16,8 +16,10 @@ Kimera-Multi does), odometry known inliers, so that a wrong closure gets weight 
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -72,6 +74,15 @@ class Solution:
             if isinstance(factor, gtsam.BetweenFactorPose3):
                 kept.add(factor)
         gtsam.writeG2o(kept, self.values, str(path))
+
+    def g2o_text(self) -> str | None:
+        """`write_g2o`'s file as text (None without a graph): what the live map stores."""
+        if self.graph is None:
+            return None
+        with tempfile.TemporaryDirectory() as d:
+            path = Path(d) / "pose_graph.g2o"
+            self.write_g2o(path)
+            return path.read_text()
 
 
 class FleetGraph:

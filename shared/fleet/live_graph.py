@@ -101,7 +101,7 @@ class LiveGraph:
         fleet = self._solve(kfs, placement, edges, now + self.budget_s)
         if fleet is None:
             return False
-        write_graph(self.db, graph_row(placement.version, fleet, ids))
+        write_graph(self.db, graph_row(placement.version, fleet, ids), fleet.solution.g2o_text())
         self._solved, self._last = key, (placement.version, time.monotonic())
         log.info("live map: keyframe graph of %d robots solved %s", len(ids), fleet.summary())
         return True

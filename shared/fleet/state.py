@@ -2,11 +2,12 @@
 `PlaceDB` (`fleetmap.place.fleet_access`) or, inside the place database, its `Store`.
 
 Two rows matter: "pairs" (the merge worker's `PairState`s, JSON keyed "A|B") and "map" (the
-`Placement`); "graph" (the keyframe graph's solution) holds for the "map" version it
-names. Every change of the pair states is a compare-and-set (`update_states`): a
-replica that lost its lock, or a state computed before a robot was deleted, cannot write
-over a newer one. Deleting a robot forgets what was derived from it in the store's delete
-transaction (`forget_robot`), so a robot id that comes back starts fresh.
+`Placement`); "graph" (the keyframe graph's solution) and "graph_g2o" (that graph as a g2o
+file) hold for the "map" version they name. Every change of the pair states is a
+compare-and-set (`update_states`): a replica that lost its lock, or a state computed before
+a robot was deleted, cannot write over a newer one. Deleting a robot forgets what was
+derived from it in the store's delete transaction (`forget_robot`), so a robot id that comes
+back starts fresh.
 """
 
 from __future__ import annotations
@@ -44,8 +45,20 @@ def read_graph(store) -> dict | None:
     return None if raw is None else json.loads(raw)
 
 
-def write_graph(store, row: dict) -> None:
+def write_graph(store, row: dict, g2o: str | None = None) -> None:
+    """The solution, and its keyframe graph in g2o's format (`Solution.g2o_text`) in a row
+    of its own ("graph_g2o", for the same placement version): `GET /map` reads the first
+    on every call, the second is read only when asked for."""
+    if g2o is not None:
+        store.live_put("graph_g2o", json.dumps({"version": row["version"], "g2o": g2o}))
     store.live_put("graph", json.dumps(row))
+
+
+def read_graph_g2o(store, version: int) -> str | None:
+    """The keyframe graph (g2o text) solved on placement `version`, or None where none is."""
+    raw = store.live_get("graph_g2o")
+    row = None if raw is None else json.loads(raw)
+    return row["g2o"] if row is not None and row["version"] == version else None
 
 
 def read_worker(store) -> dict | None:

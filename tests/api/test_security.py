@@ -3,6 +3,7 @@
 import gzip
 import logging
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -63,6 +64,7 @@ def test_operator_token_reads_and_administers(secured):
         ("post", "/admin/retrain"),
         ("get", "/links"),
         ("put", "/links/A/B"),
+        ("get", "/map/pose_graph.g2o"),
     ]:
         assert getattr(secured, method)(path, headers=_auth(TOK_A)).status_code == 403, path
         assert getattr(secured, method)(path).status_code == 401, path
@@ -156,3 +158,24 @@ def test_openapi_declares_bearer_errors_and_serves_its_docs_offline(tmp_path, ki
         assert not re.findall(r"https?://(?!127\.0\.0\.1)", page)  # nothing fetched from outside
         for asset in re.findall(r"(/static/swagger/[\w.-]+)", page):
             assert c.get(asset).status_code == 200
+
+
+def test_the_live_pose_graph_is_served_only_for_the_current_placement(secured):
+    """`GET /map/pose_graph.g2o`: 404 naming the placement before a graph is solved and
+    after the placement moved on; the stored g2o text as it was solved in between."""
+    from fleetmap.fleet.state import write_graph, write_placement
+    from fleetmap.fleet.types import Placement
+
+    db = secured.app.state.db
+    r = secured.get("/map/pose_graph.g2o", headers=_auth(OP))
+    assert r.status_code == 404 and r.json()["error"] == "NotSolved", r.text
+    assert "placement 0" in r.json()["detail"]
+    text = "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+    write_placement(db, Placement("A", {"A": np.eye(4)}, version=3))
+    write_graph(db, {"version": 3, "summary": {}, "robots": {}}, text)
+    r = secured.get("/map/pose_graph.g2o", headers=_auth(OP))
+    assert r.status_code == 200 and r.text == text
+    assert r.headers["content-type"].startswith("text/plain")
+    write_placement(db, Placement("A", {"A": np.eye(4)}, version=4))  # a newer placement
+    r = secured.get("/map/pose_graph.g2o", headers=_auth(OP))
+    assert r.status_code == 404 and "placement 4" in r.json()["detail"]

@@ -187,11 +187,19 @@ def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
     corrects the same bent maps posted with their views: `GET /map`'s trajectories as far
     under the rigid floor as the batch merge's, the correction reported per robot, and
     the cloud drawn from the corrected keyframes."""
+    from scipy.spatial import cKDTree
+
     from fleetmap.dataset import load_depth, load_rgb
     from fleetmap.fleet.live_graph import LiveGraph
     from fleetmap.fleet.map_document import map_document
     from fleetmap.fleet.map_render import MapRenderer
-    from fleetmap.fleet.state import load_states, read_placement, update_states, write_placement
+    from fleetmap.fleet.state import (
+        load_states,
+        read_graph_g2o,
+        read_placement,
+        update_states,
+        write_placement,
+    )
     from fleetmap.fleet.types import Placement, pair_key
     from fleetmap.frame import encode
     from fleetmap.place.db import PlaceDB
@@ -229,6 +237,14 @@ def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
         for f in m["fleet"]:
             assert f["drift_correction"]["applied"] and f["drift_correction"]["moved_max_m"] > 0.05
         assert m["fleet_graph"]["closures"]["depth"] > 0  # refined against the stored views
+        # the keyframe graph as `GET /map/pose_graph.g2o` serves it: a vertex per keyframe,
+        # at the corrected poses the trajectories show; odometry and kept closures as edges
+        g2o = read_graph_g2o(db, 1).splitlines()
+        vertices = np.array([v.split()[2:5] for v in g2o if v.startswith("VERTEX_SE3")], float)
+        assert len(vertices) == m["fleet_graph"]["keyframes"] == len(est)
+        assert cKDTree(vertices).query(est)[0].max() < 1e-3
+        edges = sum(e.startswith("EDGE_SE3") for e in g2o)
+        assert edges > len(est) - 2  # the two robots' odometry chains and kept closures
         pts, _, idx = MapRenderer(db).cloud(m, 0.05)
         assert len(pts) and set(np.unique(idx)) == {0, 1}
         assert not graph.step(read_placement(db), load_states(db))  # nothing new: no solve
