@@ -4,12 +4,13 @@ overlap lines, and the vendored three.js files (served from here: no CDN, works 
 from __future__ import annotations
 
 from pathlib import Path as FsPath
+from typing import Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
-from fleetmap.errors import UnknownRobot
+from fleetmap.errors import NotSolved, UnknownRobot
 from fleetmap.fleet.map_document import map_document
 from fleetmap.fleet.map_render import BASE_VOXEL_M
 from fleetmap.fleet.map_scene import DEFAULT_VOXEL_M, overlap_lines
@@ -39,14 +40,23 @@ def robot_cloud(
     scene: Scene,
     robot: str = ROBOT,
     voxel: float = Query(DEFAULT_VOXEL_M, ge=BASE_VOXEL_M, le=1.0, description="metres"),
+    frame: Literal["own", "reference"] = Query(
+        "own", description="own: the robot's map frame; reference: placed, drift-corrected"
+    ),
 ) -> Response:
-    """One robot's map cloud in ITS OWN map frame (apply `transforms[robot]` of `GET /map`),
-    voxelised and capped at 100 000 points: N float32 x y z, then N uint8 r g b (image
-    colour); `x-points: N`. Cached until the robot gains views."""
+    """One robot's map cloud, voxelised and capped at 100 000 points: N float32 x y z, then
+    N uint8 r g b (image colour); `x-points: N`, `x-frame: own|reference`. In ITS OWN map
+    frame by default (apply `transforms[robot]` of `GET /map`; cached until the robot gains
+    views); with `frame=reference` in the reference frame, each point moved with its
+    keyframe's drift correction where the keyframe graph corrects the robot (a bent map has
+    no single transform), else by `transforms[robot]`; 404 if the robot is not placed."""
     if db.robot_code(robot) is None:
         raise UnknownRobot(f"Unknown robot {robot!r}")
-    body = scene.robot_cloud(robot, len(db.view_ids(robot)), voxel)
-    headers = {"x-points": str(len(body) // 15), "cache-control": "no-store"}
+    m = map_document(db) if frame == "reference" else None
+    if m is not None and robot not in m["transforms"]:
+        raise NotSolved(f"robot {robot!r} is not placed in the live map (version {m['version']})")
+    body = scene.robot_cloud(robot, len(db.view_ids(robot)), voxel, m)
+    headers = {"x-points": str(len(body) // 15), "x-frame": frame, "cache-control": "no-store"}
     return Response(body, media_type="application/octet-stream", headers=headers)
 
 

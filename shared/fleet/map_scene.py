@@ -3,7 +3,9 @@ layout, and the scene's lines (keyframe tracks, verified overlaps) in the refere
 
 The cloud of a robot is in ITS OWN map frame (the page applies `transforms[R]` from
 `GET /map`), so a new placement moves it without a download; it is cached per robot until
-the robot gains views.
+the robot gains views. A drift-corrected robot's map is bent, so no one transform places
+it: its cloud is asked for in the reference frame, each point moved with the keyframe that
+saw it (`StoredCorrection.warp`, as `GET /map/cloud.ply`), cached until the next solve.
 """
 
 from __future__ import annotations
@@ -48,11 +50,16 @@ class SceneCache:
         self._cache: OrderedDict[tuple, bytes] = OrderedDict()
         self._max = max_entries
 
-    def robot_cloud(self, robot: str, views: int, voxel: float) -> bytes:
-        """The robot's cloud in its own map frame, voxelised at `voxel` and thinned."""
+    def robot_cloud(self, robot: str, views: int, voxel: float, m: dict | None = None) -> bytes:
+        """The robot's cloud voxelised at `voxel` and thinned: in its own map frame, or with
+        `m` (the map document, the robot placed in it) in the reference frame, drift-corrected
+        where the keyframe graph solved on this placement corrects it."""
+        from fleetmap.fleet.live_graph import stored_corrections
         from fleetmap.mapcloud import MapCloud
 
         key = (robot, views, round(voxel, 4))
+        if m is not None:
+            key += (m["version"], m.get("fleet_graph", {}).get("solved_at"))
         with self._lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
@@ -61,6 +68,10 @@ class SceneCache:
             p, c = self.renderer.robot_cloud(robot)
         if len(p) and voxel > DEFAULT_VOXEL_M:
             p, c = MapCloud(p, c).voxelised(voxel)
+        if m is not None:
+            corrected = stored_corrections(self.renderer.db, m["version"])[0]
+            T = transform_from_json(m["transforms"][robot])
+            p = corrected[robot].warp(p) if robot in corrected else apply(T, p)
         body = cloud_bytes(*thinned(p, c))
         with self._lock:
             self._cache[key] = body

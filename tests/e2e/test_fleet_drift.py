@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from fleetmap.fleet.drift import write_drifted
 from fleetmap.fleet.view_choice import frame_at, load_view, pair_views
 from fleetmap.geometry import apply, displacement_rms, invert
 from fleetmap.mapcloud import ViewsCloud
+from fleetmap.place.store import DB_FILE
 from fleetmap.registration import kabsch
 from fleetmap.services.cli import main
 
@@ -207,7 +209,7 @@ def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
 
     dirs, truth, _, report = drifted[:4]
     kfs, true_kf = keyframes
-    db = PlaceDB(tmp_path / "live.sqlite", vocabulary)
+    db = PlaceDB(tmp_path / DB_FILE, vocabulary)  # served by a place-db process below
     try:
         for r in "AB":
             frames = read_recording(dirs[r]).frames
@@ -247,6 +249,51 @@ def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
         assert edges > len(est) - 2  # the two robots' odometry chains and kept closures
         pts, _, idx = MapRenderer(db).cloud(m, 0.05)
         assert len(pts) and set(np.unique(idx)) == {0, 1}
+        _scene_cloud_is_corrected(db, m, pts[idx == 1])
         assert not graph.step(read_placement(db), load_states(db))  # nothing new: no solve
     finally:
         db.close()
+    _page_draws_corrected_clouds(tmp_path)
+
+
+def _scene_cloud_is_corrected(db, m: dict, full_b: np.ndarray) -> None:
+    """The 3D view's cloud of B in the reference frame (`cloud.bin?frame=reference`) is
+    bent as the merged cloud is: on it, and far from B's cloud placed rigidly."""
+    from scipy.spatial import cKDTree
+
+    from fleetmap.fleet.map_render import MapRenderer
+    from fleetmap.fleet.map_scene import SceneCache
+    from fleetmap.fleet.types import transform_from_json
+
+    def xyz(body: bytes) -> np.ndarray:
+        return np.frombuffer(body, "<f4", 3 * (len(body) // 15)).reshape(-1, 3)
+
+    scene, views, T_B = SceneCache(MapRenderer(db)), m["fleet"][1]["views"], m["transforms"]["B"]
+    bent = xyz(scene.robot_cloud("B", views, 0.05, m))
+    rigid = apply(transform_from_json(T_B), xyz(scene.robot_cloud("B", views, 0.05)))
+    assert len(bent) == len(rigid) > 1000
+    assert np.median(cKDTree(full_b).query(bent)[0]) < 0.025  # half a voxel: grids differ
+    assert np.linalg.norm(bent - rigid, axis=1).max() > 0.03
+
+
+def _page_draws_corrected_clouds(data_dir) -> None:
+    """The operator page in headless chromium (software WebGL) over a place-db process
+    serving the corrected store: both robots' clouds drawn in the reference frame."""
+    from tests.browser import chromium_dom
+    from tests.servers import Service, http
+
+    token = "drift-op-token"
+    auth = {"authorization": f"Bearer {token}"}
+    svc = Service("place-db", data_dir, env={"FLEETMAP_PLACE_DB_OPERATOR_TOKEN": token}).start()
+    try:
+        for r in "AB":  # over HTTP; and the page then finds them built
+            got = http.get(f"{svc.url}/map/robots/{r}/cloud.bin?frame=reference", headers=auth)
+            assert got.status_code == 200 and got.headers["x-frame"] == "reference", got.text
+        bad = http.get(f"{svc.url}/map/robots/A/cloud.bin?frame=theirs", headers=auth)
+        assert bad.status_code == 422 and "frame" in bad.text
+        dom = chromium_dom(f"{svc.url}/#token={token}&view=3d", budget_ms=30000, webgl=True)
+    finally:
+        svc.stop()
+    drawn = re.search(r'data-view3d="([^"]*)"', dom)
+    assert drawn and set(drawn[1].split(",")) == {"A", "B"}, dom[-3000:]
+    assert set(re.search(r'data-view3d-corrected="([^"]*)"', dom)[1].split(",")) == {"A", "B"}

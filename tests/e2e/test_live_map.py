@@ -7,9 +7,6 @@ a restart mid-stream (SQLite)."""
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
-import tempfile
 import time
 
 import cv2
@@ -18,6 +15,7 @@ import pytest
 
 from fleetmap.geometry import transform_error
 from fleetmap.services.cli import main
+from tests.browser import chromium_dom, chromium_screenshot
 from tests.conftest import write_robot
 from tests.servers import LIVE_FAST, Service, http
 
@@ -155,61 +153,6 @@ def test_both_replicas_serve_one_map_each_pair_aligned_once(live, sim_fleet):
     check_truth(m, sim_fleet[1])
     started = sum(s.read_log().count("live map: aligning") for s in (one, two))
     assert started == sum(p["attempts"] for p in m["pairs"])  # no pair aligned twice
-
-
-def chromium_dom(url: str, budget_ms: int = 8000) -> str:
-    """The page's DOM after its scripts ran, in Debian's headless chromium."""
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.fail("chromium is not installed: scripts/install.sh installs Debian's chromium")
-    with tempfile.TemporaryDirectory() as profile:
-        proc = subprocess.run(
-            [
-                exe,
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                f"--user-data-dir={profile}",
-                f"--virtual-time-budget={budget_ms}",
-                "--dump-dom",
-                url,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return proc.stdout
-
-
-def chromium_screenshot(url: str, size: str = "900,700", budget_ms: int = 10000) -> np.ndarray:
-    """The page as Debian's headless chromium draws it with software WebGL (SwiftShader):
-    BGR pixels."""
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.fail("chromium is not installed: scripts/install.sh installs Debian's chromium")
-    with tempfile.TemporaryDirectory() as tmp:
-        shot = f"{tmp}/shot.png"
-        proc = subprocess.run(
-            [
-                exe,
-                "--headless",
-                "--no-sandbox",
-                "--use-gl=swiftshader",
-                "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader",
-                f"--user-data-dir={tmp}/profile",
-                f"--window-size={size}",
-                f"--virtual-time-budget={budget_ms}",
-                f"--screenshot={shot}",
-                url,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        return cv2.imread(shot)
 
 
 def test_3d_view_draws_every_placed_robot_offline(live):

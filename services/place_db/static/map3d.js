@@ -1,7 +1,8 @@
 // The operator page's 3D view (three.js, vendored: no CDN). The page's script hands over
 // every map it reads (event "fleetmap-map": the map and its token-carrying `get`); this
 // draws each placed robot's cloud (GET /map/robots/R/cloud.bin, in R's own map frame,
-// placed by transforms[R]), its keyframe track (GET /map/trajectories) and the verified
+// placed by transforms[R]; a drift-corrected robot's in the reference frame, bent with its
+// keyframes), its keyframe track (GET /map/trajectories) and the verified
 // overlaps (GET /map/lines), z up as in ROS. Orbit: left drag; pan: right drag; zoom: wheel.
 // The page loads map3d.bundle.js: this file with three.js, built by scripts/build_map3d.sh.
 import * as THREE from "three";
@@ -51,8 +52,9 @@ function material(robot) {
 }
 function robotColour(robot) { return new THREE.Color(...(colours[robot] || [0.6, 0.6, 0.6])); }
 
-async function loadCloud(get, robot, views) {
-  const buf = await (await get("/map/robots/" + encodeURIComponent(robot) + "/cloud.bin")).arrayBuffer();
+async function loadCloud(get, robot, want, inRef) {
+  const q = inRef ? "?frame=reference" : "";
+  const buf = await (await get("/map/robots/" + encodeURIComponent(robot) + "/cloud.bin" + q)).arrayBuffer();
   const n = buf.byteLength / 15;
   const geo = new THREE.BufferGeometry();
   geo.setAttribute("position", new THREE.BufferAttribute(new Float32Array(buf, 0, 3 * n), 3));
@@ -63,7 +65,7 @@ async function loadCloud(get, robot, views) {
   const points = new THREE.Points(geo, material(robot));
   points.matrixAutoUpdate = false;
   scene.add(points);
-  clouds.set(robot, { views, points });
+  clouds.set(robot, { want, inRef, points });
 }
 
 function setLines(group, segments, colourOf) {
@@ -90,22 +92,27 @@ function fit() {
 
 async function show(m, get) {
   const views = Object.fromEntries(m.fleet.map((f) => [f.robot, f.views]));
-  const key = m.version + ":" + m.fleet.map((f) => f.views).join(",");
+  // a drift-corrected robot's map is bent: its cloud comes in the reference frame, each
+  // point moved with its keyframe (cloud.bin?frame=reference), again after every solve
+  const bent = new Set(m.fleet.filter((f) => f.drift_correction?.applied).map((f) => f.robot));
+  const solved = m.fleet_graph?.solved_at ?? "";
+  const want = (r) => views[r] + (bent.has(r) ? ":" + m.version + ":" + solved : "");
+  const key = m.version + ":" + solved + ":" + m.fleet.map((f) => f.views).join(",");
   if (key === shownKey || busy) return;
   busy = true;
   try {
     // everything at once: the lines, the tracks and every cloud that changed
-    const changed = m.robots.filter((r) => r in m.transforms && clouds.get(r)?.views !== views[r]);
+    const changed = m.robots.filter((r) => r in m.transforms && clouds.get(r)?.want !== want(r));
     const [lines, traj] = await Promise.all([
       get("/map/lines").then((r) => r.json()),
       get("/map/trajectories").then((r) => r.json()),
-      ...changed.map((r) => loadCloud(get, r, views[r])),
+      ...changed.map((r) => loadCloud(get, r, want(r), bent.has(r))),
     ]);
     colours = lines.colours;
     for (const [r, c] of clouds) {
       const placed = r in m.transforms;
       c.points.visible = placed;
-      if (placed) c.points.matrix.copy(rowMajor(m.transforms[r]));
+      if (placed) c.points.matrix.copy(c.inRef ? new THREE.Matrix4() : rowMajor(m.transforms[r]));
       c.points.material.dispose(); c.points.material = material(r);  // colours may be new
     }
     setLines(tracks, Object.entries(traj).map(([r, rows]) => [r, rows.map((row) => row.slice(1, 4))]), robotColour);
@@ -115,6 +122,7 @@ async function show(m, get) {
     resize();
     const drawn = [...clouds.entries()].filter(([, c]) => c.points.visible).map(([r]) => r);
     document.body.dataset.view3d = drawn.join(",");
+    document.body.dataset.view3dCorrected = drawn.filter((r) => clouds.get(r).inRef).join(",");
     if (!document.body.dataset.first3dMs) document.body.dataset.first3dMs = Math.round(performance.now());
   } finally {
     busy = false;
