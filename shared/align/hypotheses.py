@@ -81,7 +81,7 @@ def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, 
     return float(np.minimum(r, tol).mean()), int(np.count_nonzero(r < tol))
 
 
-def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
+def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, memo=None):
     """Coarse: point-to-plane ICP of every distinct hypothesis on coarse clouds, judged by
     the free-space test; those that keep visual support (at least `min_inliers` raw
     matches agreeing) are judged again on the fine clouds, the best few; the winner is
@@ -97,7 +97,11 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     cm geometric). The matches decide where they can tell (`ranked`: agreeing within 4 cm,
     beyond the counts' noise), the depth where they cannot: on 17 recall pairs the depth
     alone chose the worse refinement 6 times (up to 7.0 against 2.7 cm), this rule once
-    (a tie, 3.3 against 0.4 cm). See docs/ALIGNER.md."""
+    (a tie, 3.3 against 0.4 cm). See docs/ALIGNER.md.
+
+    `memo` (a dict, or None): ICPs, judgements and refinements by the transform they
+    started from, for a second call on the same clouds and views (the second look at a
+    pair meets the first look's hypotheses again)."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
@@ -105,23 +109,26 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams):
     hyps = sorted(hyps, key=lambda h: -h.support)
     hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
     log.debug("%d distinct hypotheses", len(hyps))
+    memo = {} if memo is None else memo
     for h in hyps:
-        h.T_a_b, _, _ = icp(cb0, ca0, h.T_a_b, distances=(4 * v0, 1.5 * v0), iterations=15)
+        h.T_a_b = _memo(memo, "icp", h.T_a_b, lambda T: icp(cb0, ca0, T, (4 * v0, 1.5 * v0), 15)[0])
     hyps = _distinct(hyps, probe, v0)
     for h in hyps:
-        _judge(h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
+        _judged(memo, "coarse", h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
         h.support = _visual_cost(h.T_a_b, R, 1.5 * p.ransac_tol_m)[1]
     backed = [h for h in hyps if h.support >= p.min_inliers] or hyps
     backed.sort(key=lambda h: -h.score)
     top = backed[: p.refine]
     ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
     for h in top:
-        _judge(h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
+        _judged(memo, "fine", h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
     top.sort(key=lambda h: -h.score)
     best = top[0]
     if refused_whatever_refined(best, p):
         return best, top[1:]
-    for T, source in ranked(_refinements(best, clouds, p), R, cb1, ca1, p):
+    refined = _memo(memo, "refine", best.T_a_b, lambda T: _refinements(T, clouds, p))
+    refined = [(T, best.source + how) for T, how in refined]
+    for T, source in ranked(refined, R, cb1, ca1, p):
         dt, dr = displacement_rms(T, best.T_a_b, probe), transform_error(T, best.T_a_b)[1]
         kept = _visual_cost(T, R, 1.5 * p.ransac_tol_m)[1]
         # a refinement, not a jump elsewhere, and one the matches that proposed it still
@@ -162,19 +169,37 @@ def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p:
     return [cands[k] for k in tied + rest]
 
 
-def _refinements(best: Hypothesis, clouds, p: AlignParams) -> list[tuple[np.ndarray, str]]:
+def _memo(memo: dict, kind: str, T: np.ndarray, make):
+    """memo[(kind, T)], made by make(T) the first time."""
+    key = (kind, np.asarray(T, np.float64).tobytes())
+    if key not in memo:
+        memo[key] = make(T)
+    return memo[key]
+
+
+def _judged(memo: dict, kind: str, h: Hypothesis, *args) -> None:
+    """`_judge` of h, or its counts and fitness from `memo` for the same transform."""
+
+    def judge(T):
+        _judge(h, *args)
+        return h.supports, h.conflicts, h.firm_conflicts, h.fitness
+
+    h.supports, h.conflicts, h.firm_conflicts, h.fitness = _memo(memo, kind, h.T_a_b, judge)
+
+
+def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarray, str]]:
     """The best hypothesis refined two ways: point-to-plane ICP (the wide distances on the
     coarser colour scale's cloud, the last on the fine one), and multi-scale coloured ICP
-    where both clouds have colour. Returns [(T_a_b, source)]."""
+    where both clouds have colour, from T0. Returns [(T_a_b, "+icp" or "+colour")]."""
     v1 = p.voxel_m
     ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
     vm = 4 * v1 / 3
-    T, _, _ = icp(clouds[1].at(vm), clouds[0].at(vm), best.T_a_b, (3 * v1, 1.5 * v1), 20)
+    T, _, _ = icp(clouds[1].at(vm), clouds[0].at(vm), T0, (3 * v1, 1.5 * v1), 20)
     T, _, _ = icp(cb1, ca1, T, distances=(v1,), iterations=20)
-    refined = [(T, best.source + "+icp")]
+    refined = [(T, "+icp")]
     if not (p.colour_icp and ca1.has_colors() and cb1.has_colors()):
         return refined
-    T = best.T_a_b
+    T = T0
     try:
         for v in (vm, 2 * v1 / 3):
             ca, cb = clouds[0].at(v), clouds[1].at(v)
@@ -187,7 +212,7 @@ def _refinements(best: Hypothesis, clouds, p: AlignParams) -> list[tuple[np.ndar
                 REG.ICPConvergenceCriteria(max_iteration=20),
             )
             T = np.asarray(r.transformation)
-        refined.append((T, best.source + "+colour"))
+        refined.append((T, "+colour"))
     except RuntimeError:  # too few points with colour gradients
         pass
     return refined

@@ -48,10 +48,11 @@ def align_views(
         raise BadInput("Give at least one RGB-D pair")
     depth = scene_depth(pairs)
     C, R = verified_and_raw(pairs, pair_features(pairs))
-    res = _align(C, R, pairs, p, depth)
+    pair = _PairClouds(pairs)  # both looks see the same views: their clouds made once
+    res = _align(C, R, pair, p, depth)
     if not res.merged and p.second_look and len(R) >= p.min_inliers:
         R = Correspondences.concat([R, affine_matches(pairs, len(pairs))])
-        again = _align(C, R, pairs, p, depth, pinned=True)
+        again = _align(C, R, pair, p, depth, pinned=True)
         if again.merged:
             res = again
             res.method += "+asift"
@@ -81,8 +82,30 @@ def scene_depth(pairs: list[tuple[RGBDView, RGBDView]]) -> float:
     return float(np.median(meds))
 
 
+class _PairClouds:
+    """Each robot's views (`unique_views`) and their clouds (`ViewsCloud`, made on first
+    use and kept with every scale they were asked at), for both looks at one pair; `memo`:
+    `hypotheses.choose`'s ICPs and judgements on them, which the second look meets again
+    for the first look's hypotheses."""
+
+    def __init__(self, pairs):
+        self.views = unique_views(pairs, 0), unique_views(pairs, 1)
+        self._clouds = None
+        self.memo: dict = {}
+
+    def clouds(self) -> tuple[ViewsCloud, ViewsCloud]:
+        if self._clouds is None:
+            self._clouds = ViewsCloud(self.views[0]), ViewsCloud(self.views[1])
+        return self._clouds
+
+
 def _align(
-    C: Correspondences, R: Correspondences, pairs, p: AlignParams, depth: float, pinned=False
+    C: Correspondences,
+    R: Correspondences,
+    pair: _PairClouds,
+    p: AlignParams,
+    depth: float,
+    pinned=False,
 ) -> AlignResult:
     """C: verified (epipolar) correspondences, R: raw matches of every pair. `pinned`: the
     matches must pin the fit (`_unpinned`), asked of the second look's merges: they rest on
@@ -99,10 +122,9 @@ def _align(
     hyps += pair_hypotheses(R, p)
     if not hyps:
         return AlignResult(False, "no rigid consensus among the correspondences")
-    views_a, views_b = unique_views(pairs, 0), unique_views(pairs, 1)
-    clouds = ViewsCloud(views_a), ViewsCloud(views_b)
+    (views_a, views_b), clouds = pair.views, pair.clouds()
     if p.use_icp:
-        best, rivals = choose(hyps, R, views_a, views_b, clouds, p)
+        best, rivals = choose(hyps, R, views_a, views_b, clouds, p, pair.memo)
         probe = probe_points(clouds[1].at(p.coarse_voxel_m))
         method = "rigid+icp+colour" if best.source.endswith("+colour") else "rigid+icp"
     else:
