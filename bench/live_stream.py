@@ -12,7 +12,8 @@ under the found transform against the true one, in cm. Times: `stream` is the wa
 services working meanwhile; 1: recording speed); `placed after last kf` is from its end to
 the first `GET /map` (polled every 0.2 s) with every robot that should merge placed;
 `settled` is until the merge worker has had nothing to align for 10 s (refinements
-included).
+included); `final placement` is the last change of the placement after the last keyframe
+(nominated pairs that end refused move nothing).
 
 Per robot (`robots`, issue 23), from `GET /map` polled every 0.5 s during the stream too:
 `evidence_s`, when its first verified overlap with a robot it should merge with appeared
@@ -282,6 +283,13 @@ def main() -> None:
             if live["placed_after_s"] is None
             else round(live["placed_after_s"], 1),
             "settled_after_last_kf_s": round(live["settled_after_s"], 1),
+            # the placement's last change (a robot's transform or the reference) after the
+            # last keyframe: when the map an operator looks at stops moving
+            "final_placement_after_last_kf_s": round(
+                max((f[-1][0] for f in live["watch"].fits.values() if f), default=0.0)
+                - live["stream_s"],
+                1,
+            ),
             "reference": m["reference"],  # the live map's own (most keyframes)
             "live_cm": errors(m["transforms"], frames, m["reference"], work),
             "unmerged": m["unmerged"],

@@ -47,8 +47,18 @@ def test_due_pairs_take_turns():
             due_order(True, refused(20, 1, 100.0), 30, "B", "C"),
         ]
     )
-    assert [k[3:] for k in keys] == [("A", "B"), ("B", "C"), ("A", "evil")]
+    assert [k[4:] for k in keys] == [("A", "B"), ("B", "C"), ("A", "evil")]
     assert due_order(False, None, 3, "A", "B") > due_order(True, refused(1, 9, 9e9), 1, "X", "Y")
+
+
+def test_verified_pairs_go_before_nominated_ones():
+    """A merged pair's last fit (verified evidence) before a pair the bags of words alone
+    nominate, even one that would place a new robot and was never tried."""
+    merged = {"status": "merged", "evidence": 3, "at": 9e9}
+    last_fit = due_order(False, merged, 5, "A", "B")
+    nominated = due_order(True, None, 0, "A", "D")
+    assert last_fit < nominated
+    assert due_order(True, None, 1, "C", "D") < last_fit  # a new robot on verified evidence
 
 
 def test_the_reference_is_not_won_by_arriving_first():
