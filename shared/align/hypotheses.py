@@ -114,9 +114,10 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
         h.T_a_b = _memo(memo, "icp", h.T_a_b, lambda T: icp(cb0, ca0, T, (4 * v0, 1.5 * v0), 15)[0])
     hyps = _distinct(hyps, probe, v0)
     for h in hyps:
-        _judged(memo, "coarse", h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
         h.support = _visual_cost(h.T_a_b, R, 1.5 * p.ransac_tol_m)[1]
     backed = [h for h in hyps if h.support >= p.min_inliers] or hyps
+    for h in backed:  # the others are not looked at again: not judged either
+        _judged(memo, "coarse", h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
     backed.sort(key=lambda h: -h.score)
     top = backed[: p.refine]
     ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
