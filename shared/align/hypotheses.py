@@ -4,6 +4,7 @@ the free-space test, and the choice among refinements (see `choose`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -106,8 +107,8 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
     views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
     probe = probe_points(cb0)
-    hyps = sorted(hyps, key=lambda h: -h.support)
-    hyps = _distinct(hyps, probe, p.dedupe_m)[: p.max_candidates]
+    hyps = _distinct(sorted(hyps, key=lambda h: -h.support), probe, p.dedupe_m)
+    hyps = hyps[: p.max_candidates]
     log.debug("%d distinct hypotheses", len(hyps))
     memo = {} if memo is None else memo
     for h in hyps:
@@ -135,10 +136,8 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
         # a refinement, not a jump elsewhere, and one the matches that proposed it still
         # back (coloured ICP on bent maps slid 0.22 m off every match: docs/ALIGNER.md)
         if dt <= p.rival_m and dr <= p.rival_deg and 2 * kept >= best.support:
-            polished = Hypothesis(T, best.support, source)
-            # rivals were judged unrefined: compare like with like
-            polished.supports, polished.conflicts = best.supports, best.conflicts
-            polished.firm_conflicts = best.firm_conflicts
+            # rivals were judged unrefined: compare like with like (the same counts)
+            polished = dataclasses.replace(best, T_a_b=T, source=source)
             polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
             return polished, top[1:]
     return best, top[1:]

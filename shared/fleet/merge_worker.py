@@ -1,20 +1,16 @@
-"""The live merge worker: the place database aligns robots itself as overlaps appear. Where
-the live worker decides what to align (`LiveMap.due_pairs`, the rules in
-`fleetmap.fleet.merge_rules`) and places the fleet (`LiveMap.place`).
+"""The live merge worker: the place database aligns robots itself as overlaps appear; it
+decides what to align (`LiveMap.due_pairs`, rules in `fleetmap.fleet.merge_rules`) and
+places the fleet (`LiveMap.place`, as `fleetmap merge`: `fleetmap.fleet.placement`).
 
-A merge worker (one thread; on PostgreSQL one replica at a time, under an advisory lock)
-looks at the verified overlaps of every robot pair once a second. A pair is aligned when it
-has new evidence: first overlaps, more overlaps after the gate refused it, or many more
-(`refine_factor`) since it was merged; once the robots are quiet, a pair with no verified
-overlap is aligned once from the place database's nominated keyframe pairs (the BoW-nearest,
-`fleetmap.place.nominate`), again only after either robot gained keyframes. The views sent
-are the stored RGB-D views near its verified keyframes, chosen as `fleetmap merge` chooses
-them (`fleetmap.fleet.view_choice.spread`), so a live map is as accurate as a batch merge of
-the same keyframes. A gated result becomes a link (`PlaceDB.add_link`) and the fleet is
-placed again (`fleetmap.fleet.placement.place_fleet`, as `fleetmap merge` does). Pair states
-(`fleetmap.fleet.types.PairState`) and the placement are stored (`fleetmap.fleet.state`),
-so a restart aligns nothing twice and serves the same map. The worker reads and writes the
-place database only through `PlaceDB` (`fleetmap.place.fleet_access`).
+One thread (on PostgreSQL one replica at a time, under an advisory lock) looks at the
+verified overlaps of every robot pair once a second. A pair is aligned on new evidence:
+first overlaps, more after a refusal, many more (`refine_factor`) since its merge; once the
+robots are quiet, a pair with no verified overlap once from the nominated keyframe pairs
+(`fleetmap.place.nominate`), again only after either robot gained keyframes. Its views are
+the stored RGB-D views near its keyframes, chosen as `fleetmap merge` chooses them
+(`fleetmap.fleet.view_choice.spread`). A gated result becomes a link (`PlaceDB.add_link`);
+pair states and the placement are stored (`fleetmap.fleet.state`): a restart aligns nothing
+twice. The worker reads and writes the place database only through `PlaceDB`.
 """
 
 from __future__ import annotations
@@ -107,6 +103,7 @@ class LiveMap:
         self._leading = True  # False once the store's lock was lost: nothing is stored
         self._same: dict[tuple[int, int], bool] = {}  # keyframe pair -> one picture twice
         self.copiers: dict[str, str] = {}  # robot -> why its keyframes are no evidence
+        self._nominated: dict[str, bool] = {}  # pair -> its last attempt was nominated
         self.graph = LiveGraph(
             db, budget_s=self.params.graph_budget_s, interval_s=self.params.graph_interval_s
         )
@@ -155,14 +152,14 @@ class LiveMap:
                 states = load_states(self.db)
                 due = [d for d in self.due_pairs(states) if pair_key(d[0], d[1]) not in flying]
                 for a, b, overlaps in self._next(due, flying):
-                    log.info(
-                        "live map: aligning %s-%s on %d verified overlaps", a, b, len(overlaps)
-                    )
-                    before = states.get(pair_key(a, b))
-                    flying[pair_key(a, b)] = pool.submit(self.attempt, a, b, overlaps, before)
+                    key, n = pair_key(a, b), len(overlaps)
+                    log.info("live map: aligning %s-%s on %d verified overlaps", a, b, n)
+                    self._nominated[key] = overlaps[0].source == "nominated"
+                    flying[key] = pool.submit(self.attempt, a, b, overlaps, states.get(key))
                 self._note(flying, len(due))
                 if not flying:
                     self._place_new_robots(states)
+                if all(self._nominated.get(k) for k in flying):  # none that moves the map
                     self._correct(states)
                 wait(list(flying.values()) or [Future()], self.params.poll_s, FIRST_COMPLETED)
 
@@ -235,7 +232,9 @@ class LiveMap:
             self._robots_placed = robots
 
     def _correct(self, states: dict) -> None:
-        """A step of the keyframe graph while no pair is aligning (`LiveGraph.step`)."""
+        """A step of the keyframe graph (`LiveGraph.step`) while no pair with verified
+        evidence is aligning: a nominated pair is mostly refused (15-34 s on the live
+        bench), and the graph used to wait for three of them after the last refit."""
         if not self.params.correct_drift or not self._leading:
             return
         placement = read_placement(self.db)
