@@ -286,8 +286,10 @@ def _page_draws_corrected_clouds(data_dir) -> None:
     auth = {"authorization": f"Bearer {token}"}
     svc = Service("place-db", data_dir, env={"FLEETMAP_PLACE_DB_OPERATOR_TOKEN": token}).start()
     try:
-        for r in "AB":  # over HTTP; and the page then finds them built
-            got = http.get(f"{svc.url}/map/robots/{r}/cloud.bin?frame=reference", headers=auth)
+        for r in "AB":  # over HTTP (built from every stored view: seconds, more under
+            # load than the client's 5 s default); the page then finds them built
+            url = f"{svc.url}/map/robots/{r}/cloud.bin?frame=reference"
+            got = http.get(url, headers=auth, timeout=300)
             assert got.status_code == 200 and got.headers["x-frame"] == "reference", got.text
         bad = http.get(f"{svc.url}/map/robots/A/cloud.bin?frame=theirs", headers=auth)
         assert bad.status_code == 422 and "frame" in bad.text
