@@ -153,10 +153,10 @@ def cmd_map(args: argparse.Namespace) -> int:
 @dataclass
 class LiveFiles:
     """What `fleetmap map` fetched besides `GET /map`: the cloud (PLY bytes, at `voxel_m`),
-        the overview (PNG bytes), the keyframe trajectories, the overlap lines (`GET
-        /map/lines`), the overlap items of the map's robot pairs (`GET /overlaps`) and the place
-        database's parameters in force (`GET /config`) and the keyframe pose graph (g2o text, `GET
-    /map/pose_graph.g2o`; None where none is solved: the robots' graph is written instead)."""
+    the overview (PNG bytes), the keyframe trajectories, the overlap lines (`GET
+    /map/lines`), the overlap items of the map's robot pairs (`GET /overlaps`), the place
+    database's parameters in force (`GET /config`) and the keyframe pose graph (g2o text,
+    `GET /map/pose_graph.g2o`; None where none is solved: the robots' graph is written)."""
 
     cloud: bytes
     picture: bytes
@@ -189,6 +189,7 @@ def write_live_outputs(out: Path, m: dict, files: LiveFiles, source: str, second
     from fleetmap.fleet.types import pair_key, transform_from_json
     from fleetmap.services.foxglove import write_fleet_mcap
     from fleetmap.services.outputs import write_g2o, write_tum
+    from fleetmap.services.schemas import redact_url
 
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
     (out / "merged.ply").write_bytes(files.cloud)
@@ -209,8 +210,6 @@ def write_live_outputs(out: Path, m: dict, files: LiveFiles, source: str, second
         for e in m["overlaps"]
         for _ in range(e["pairs"])
     ]
-    from fleetmap.services.schemas import redact_url
-
     place_db = redact_url(source.split(",")[0])  # a password in the URL stays out
     report = live_report(m, place_db, files.overlaps, edges, files.voxel_m, files.served)
     if "fleet_graph" in m:  # the live map's keyframe graph, as `fleetmap merge` reports it

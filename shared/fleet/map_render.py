@@ -102,7 +102,7 @@ class MapRenderer:
         """Points in the reference frame, colours (uint8 RGB) and robot index (the order of
         `m["robots"]`) of every placed robot, voxelised at `voxel` per robot (coarser past
         MAX_CLOUD_POINTS in all); the last answer is kept while the map is unchanged."""
-        key = (m["version"], tuple(f["views"] for f in m["fleet"]), voxel, _solved(m))
+        key = (m["version"], tuple(f["views"] for f in m["fleet"]), voxel, solved_at(m))
         with self._lock:
             if self._cloud is not None and self._cloud[0] == key:
                 return self._cloud[1]
@@ -118,8 +118,7 @@ class MapRenderer:
                 p, c = clouds[r]
                 if len(p) and voxel > BASE_VOXEL_M:
                     p, c = _voxelised(p, c, voxel)
-                warp = corrected[r].warp if r in corrected else None
-                pts.append(warp(p) if warp else apply(transform_from_json(m["transforms"][r]), p))
+                pts.append(in_reference(m, r, p, corrected))
                 cols.append(c)
                 idx.append(np.full(len(p), k, np.uint16))
             out = _joined(pts, cols, idx)
@@ -152,7 +151,7 @@ class MapRenderer:
         from fleetmap import pictures
         from fleetmap.mapcloud import ROBOT_COLOURS
 
-        key = (m["version"], tuple(f["views"] for f in m["fleet"]), _solved(m))
+        key = (m["version"], tuple(f["views"] for f in m["fleet"]), solved_at(m))
         if self._overview is not None and self._overview[0] == key:
             return self._overview[1]
         pts, _, idx = self.cloud(m, 0.05)
@@ -178,9 +177,18 @@ class MapRenderer:
         return buf.getvalue()
 
 
-def _solved(m: dict) -> float | None:
+def solved_at(m: dict) -> float | None:
     """When the keyframe graph the map document shows was solved (None: not yet)."""
     return m.get("fleet_graph", {}).get("solved_at")
+
+
+def in_reference(m: dict, robot: str, points: np.ndarray, corrected: dict) -> np.ndarray:
+    """A placed robot's map points (N, 3) in the reference frame of the map document `m`:
+    each moved with its keyframe's drift correction where the robot is corrected
+    (`corrected`: `stored_corrections` of m's version), else by `transforms[robot]`."""
+    if robot in corrected:
+        return corrected[robot].warp(points)
+    return apply(transform_from_json(m["transforms"][robot]), points)
 
 
 def _empty_picture(buf, m: dict) -> None:

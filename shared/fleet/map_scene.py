@@ -55,11 +55,12 @@ class SceneCache:
         `m` (the map document, the robot placed in it) in the reference frame, drift-corrected
         where the keyframe graph solved on this placement corrects it."""
         from fleetmap.fleet.live_graph import stored_corrections
+        from fleetmap.fleet.map_render import in_reference, solved_at
         from fleetmap.mapcloud import MapCloud
 
         key = (robot, views, round(voxel, 4))
         if m is not None:
-            key += (m["version"], m.get("fleet_graph", {}).get("solved_at"))
+            key += (m["version"], solved_at(m))
         with self._lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
@@ -69,9 +70,7 @@ class SceneCache:
         if len(p) and voxel > DEFAULT_VOXEL_M:
             p, c = MapCloud(p, c).voxelised(voxel)
         if m is not None:
-            corrected = stored_corrections(self.renderer.db, m["version"])[0]
-            T = transform_from_json(m["transforms"][robot])
-            p = corrected[robot].warp(p) if robot in corrected else apply(T, p)
+            p = in_reference(m, robot, p, stored_corrections(self.renderer.db, m["version"])[0])
         body = cloud_bytes(*thinned(p, c))
         with self._lock:
             self._cache[key] = body

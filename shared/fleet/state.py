@@ -46,11 +46,10 @@ def read_graph(store) -> dict | None:
 
 
 def write_graph(store, row: dict, g2o: str | None = None) -> None:
-    """The solution, and its keyframe graph in g2o's format (`Solution.g2o_text`) in a row
-    of its own ("graph_g2o", for the same placement version): `GET /map` reads the first
-    on every call, the second is read only when asked for."""
-    if g2o is not None:
-        store.live_put("graph_g2o", json.dumps({"version": row["version"], "g2o": g2o}))
+    """The solution, and its keyframe graph in g2o's format (`Solution.g2o_text`; None
+    where no graph was built) in a row of its own ("graph_g2o", for the same placement
+    version): `GET /map` reads the first on every call, the second only when asked for."""
+    store.live_put("graph_g2o", json.dumps({"version": row["version"], "g2o": g2o}))
     store.live_put("graph", json.dumps(row))
 
 
