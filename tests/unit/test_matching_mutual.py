@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fleetmap.matching import mutual_best
+from fleetmap import matching
+from fleetmap.matching import match_descriptors_at, mutual_best
 
 
 def test_mutual_best_is_argmax_down_the_columns_with_ties():
@@ -16,3 +17,33 @@ def test_mutual_best_is_argmax_down_the_columns_with_ties():
         rows = np.arange(n)
         best = S.argmax(1)
         assert (mutual_best(S, rows, best) == (S.argmax(0)[best] == rows)).all()
+
+
+def _matches_from_the_whole_matrix(da, db, ratio):
+    """The definition: ratio test on each row's two nearest, mutual by argmax down the
+    columns of the full distance matrix (first row on ties)."""
+    D = ((da[:, None, :].astype(np.float64) - db[None, :, :]) ** 2).sum(2)
+    rows = np.arange(len(da))
+    best = D.argmin(1)
+    d1 = D[rows, best]
+    D2 = D.copy()
+    D2[rows, best] = np.inf
+    d2 = D2.min(1)
+    keep = (d1 < ratio**2 * d2) & (D.argmin(0)[best] == rows)
+    ia = np.flatnonzero(keep)
+    return ia, best[ia]
+
+
+def test_blocked_matching_is_the_whole_matrix_matching(monkeypatch):
+    """Integer descriptors of few levels (many ties between rows and columns), sizes over
+    several blocks of the similarity matrix."""
+    monkeypatch.setattr(matching, "_BLOCK", 7)
+    rng = np.random.default_rng(5)
+    for _ in range(60):
+        n, m = rng.integers(2, 40, size=2)
+        da = rng.integers(0, 3, size=(n, 4)).astype(np.float32)
+        db = rng.integers(0, 3, size=(m, 4)).astype(np.float32)
+        found = match_descriptors_at(da, db, (0.8, 1.0))
+        for ratio, (ia, ib) in zip((0.8, 1.0), found, strict=True):
+            ja, jb = _matches_from_the_whole_matrix(da, db, ratio)
+            assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
