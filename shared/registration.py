@@ -154,8 +154,13 @@ def ransac(
             w = best.sum() / n
             if w > 0 and lo + 256 >= np.log(1e-3) / np.log(max(1 - w**k, 1e-12)):
                 break
+    return _refit(src, dst, best, tol, fit, k)
+
+
+def _refit(src, dst, best: np.ndarray, tol: float, fit, k: int = 3):
+    """A least-squares fit on the consensus `best`, grown once: (T, inlier mask)."""
     if best.sum() < k:
-        return np.eye(4), np.zeros(n, bool)
+        return np.eye(4), np.zeros(len(src), bool)
     T = fit(src[best], dst[best])
     inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < tol
     if inl.sum() >= best.sum():
@@ -174,3 +179,65 @@ def ransac_rigid(
 ) -> tuple[np.ndarray, np.ndarray]:
     """`ransac` with the rigid model (3-point Kabsch fits)."""
     return ransac(src, dst, tol, "rigid", iterations, seed, min_spread)
+
+
+def ransac_guided(
+    src: np.ndarray,
+    dst: np.ndarray,
+    tol: float,
+    seed: int = 0,
+    seeds: int = 300,
+    per_seed: int = 32,
+    keep: int = 256,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid RANSAC for matches of which a few percent are right. Each of up to `seeds`
+    matches is sampled with `per_seed` pairs of the matches whose distance to it agrees in
+    both point sets (within 2 tol, and farther than that from it): once its seed is right,
+    a triplet is right with chance (right / agreeing)^2, where a uniform one is with
+    (right / all)^3 (81 right among 3,700, SUN3D with ASIFT: about 700,000 uniform samples
+    for a 99.9% chance). Each fit is counted among its seed's agreeing matches only (an
+    inlier of a fit through a right seed agrees with it), the `keep` best then on all. The
+    compatibility graph of SC^2-PCR (Chen et al., CVPR 2022), sampled rather than searched.
+    SUN3D's kept second looks: 300 seeds of 32 found the right consensus as 1,000 of 16 did,
+    in half the time (3 against 6.5 s for the six sets of 4,000-5,000 matches); a `keep` of
+    32 lost it among variants of a larger one.
+    Returns (T mapping src into dst, inlier mask), as `ransac_rigid`."""
+    n, rng = len(src), np.random.default_rng(seed)
+    order = rng.permutation(n)[:seeds]
+    found: list[tuple[int, np.ndarray]] = []
+    for lo in range(0, len(order), 256):
+        s = order[lo : lo + 256]
+        dx = np.linalg.norm(src[s, None] - src[None], axis=2)
+        dy = np.linalg.norm(dst[s, None] - dst[None], axis=2)
+        agree = (np.abs(dx - dy) < 2 * tol) & (dx > 2 * tol)
+        for i, row in zip(s, agree, strict=True):
+            local = np.flatnonzero(row)
+            if len(local) >= 2:
+                found += _seeded_fits(src, dst, i, local, tol, rng, per_seed)
+    if not found:
+        return np.eye(4), np.zeros(n, bool)
+    found.sort(key=lambda f: -f[0])
+    best = np.zeros(n, bool)
+    for _, T in found[:keep]:
+        inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < tol
+        if inl.sum() > best.sum():
+            best = inl
+    return _refit(src, dst, best, tol, kabsch)
+
+
+def _seeded_fits(src, dst, i: int, local: np.ndarray, tol: float, rng, per_seed: int):
+    """The best of `per_seed` triplets (i, j, m), j and m among `local`, counted on
+    `local`: [(count, T)] or []."""
+    jm = local[rng.integers(0, len(local), (per_seed, 2))]
+    trip = np.column_stack([np.full(len(jm), i), jm])[jm[:, 0] != jm[:, 1]]
+    s, d = src[trip], dst[trip]
+    ok = _usable(s, d, tol, "rigid", 1e-3)
+    if not ok.any():
+        return []
+    M, t = _batch_kabsch(s[ok], d[ok])
+    pred = np.einsum("hij,nj->hni", M, src[local]) + t[:, None]
+    count = (((pred - dst[local][None]) ** 2).sum(2) < tol * tol).sum(1)
+    j = int(count.argmax())
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = M[j], t[j]
+    return [(int(count[j]), T)]

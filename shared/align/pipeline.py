@@ -22,7 +22,13 @@ import time
 
 import numpy as np
 
-from fleetmap.align.hypotheses import choose, pair_hypotheses, probe_points, rigid_hypotheses
+from fleetmap.align.hypotheses import (
+    choose,
+    pair_hypotheses,
+    probe_points,
+    raw_hypotheses,
+    rigid_hypotheses,
+)
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import better_nearby, holdout_residual, spread_m
@@ -120,6 +126,8 @@ def _align(
         )
     hyps = rigid_hypotheses(C, p) if len(C) >= p.min_inliers else []
     hyps += pair_hypotheses(R, p)
+    if pinned:  # the second look's raw matches: 4-10x the first's, a few percent right
+        hyps += raw_hypotheses(R, p)
     if not hyps:
         return AlignResult(False, "no rigid consensus among the correspondences")
     (views_a, views_b), clouds = pair.views, pair.clouds()
