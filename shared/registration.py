@@ -85,19 +85,7 @@ def _samples(n: int, k: int, iterations: int, rng) -> np.ndarray:
     if k == 3 and n <= 22:  # every triplet: at most 1540
         idx = np.array(np.triu_indices(n, 1)).T
         return np.array([(i, j, m) for i, j in idx for m in range(j + 1, n)])
-    # uniform ordered k-subsets, as `rng.choice(n, k, replace=False)` row by row, drawn at
-    # once: rows with a repeated index are drawn again (at most 3/23 of them for k = 3).
-    # One `choice` call a row was half of RANSAC's time (py-spy, session 13)
-    out = rng.integers(0, n, (iterations, k))
-    while (bad := _repeats(out)).any():
-        out[bad] = rng.integers(0, n, (int(bad.sum()), k))
-    return out
-
-
-def _repeats(idx: np.ndarray) -> np.ndarray:
-    """Rows of `idx` (H, k) holding an index twice."""
-    s = np.sort(idx, axis=1)
-    return (s[:, 1:] == s[:, :-1]).any(axis=1)
+    return np.stack([rng.choice(n, k, replace=False) for _ in range(iterations)])
 
 
 def _usable(s: np.ndarray, d: np.ndarray, tol: float, model: str, min_spread: float):

@@ -54,7 +54,14 @@ def raw_hypotheses(R: Correspondences, p: AlignParams) -> list[Hypothesis]:
     of the truth over 24-36 view pairs (2-12 each), 2-3.5% of 4,000-5,000 (hence guided
     samples). Kept where a consensus is at least twice what chance gives: the largest
     consensus of the same matches shuffled (B's points against other A points), which
-    follows the number of matches and the scene's extent."""
+    follows the number of matches and the scene's extent.
+
+    Opt-in (`AlignParams.raw_consensus`), measured in session 13: it found the right
+    consensus for the SUN3D misses, where the gate then refused them still (a look-alike
+    rival at 0.93 of the score; matches agreeing better 0.26 m away), and on robot A's last
+    keyframes against robot B it proposed a basin the colour ICP slid 12.6 cm / 3.1 deg
+    from the truth that the gate passed (matches agree with it as with the truth, 148 and
+    157): a wrong merge where the default refuses. docs/ALIGNER.md."""
     if len(R) < p.min_inliers:
         return []
     Y = R.Y[np.random.default_rng(0).permutation(len(R))]

@@ -126,7 +126,7 @@ def _align(
         )
     hyps = rigid_hypotheses(C, p) if len(C) >= p.min_inliers else []
     hyps += pair_hypotheses(R, p)
-    if pinned:  # the second look's raw matches: 4-10x the first's, a few percent right
+    if pinned and p.raw_consensus:  # opt-in: `hypotheses.raw_hypotheses`
         hyps += raw_hypotheses(R, p)
     if not hyps:
         return AlignResult(False, "no rigid consensus among the correspondences")

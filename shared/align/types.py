@@ -22,6 +22,7 @@ class AlignParams:
     min_spread_m: float = 0.15
     max_holdout_m: float = 0.08
     hypotheses: int = 6  # disjoint consensus sets of the pooled verified matches
+    raw_consensus: bool = False  # second look: hypotheses of the raw matches pooled (opt-in)
     pair_min_support: int = 4  # a pair's raw matches give a hypothesis with this support
     max_candidates: int = 40  # distinct hypotheses scored at the coarse scale
     dedupe_m: float = 0.25  # hypotheses closer than this (RMS over B's cloud) share one ICP basin
