@@ -131,7 +131,12 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, sim_fleet, tmp_p
     assert b"property ushort robot" in ply[:400]
     assert int(ply.split(b"element vertex ")[1].split()[0]) > 1000
     g2o = (out / "pose_graph.g2o").read_text()
-    assert g2o.count("VERTEX_SE3:QUAT") == 3 and g2o.count("EDGE_SE3:QUAT") == 3
+    n = g2o.count("VERTEX_SE3:QUAT")
+    if n == 3:  # no keyframe graph solved yet on this placement: the robots' graph
+        assert g2o.count("EDGE_SE3:QUAT") == 3
+    else:  # the idle worker solved the keyframe graph: a vertex per keyframe, odometry,
+        # and at least two closures tying the three robots (run alone, it is solved by now)
+        assert n == 3 * 12 and g2o.count("EDGE_SE3:QUAT") >= 3 * 11 + 2, g2o[:300]
     assert len((out / "trajectories" / "robot2.txt").read_text().splitlines()) == 1 + 12
     from mcap.reader import make_reader  # fleet.mcap, as merge writes it (issue 25)
 
