@@ -37,7 +37,8 @@ def map_document(db) -> dict:
     for f in fleet if solved is not None else []:
         if (row := solved["robots"].get(f["robot"])) is not None:
             f["drift_correction"] = {k: row[k] for k in DRIFT_KEYS}
-            transforms[f["robot"]] = row["rigid"]  # the corrected map's best rigid T_ref_R
+            if row["applied"]:  # the corrected map's best rigid T_ref_R; else placed stands
+                transforms[f["robot"]] = row["rigid"]
     return {
         "version": m.version,
         "reference": m.reference,
