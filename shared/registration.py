@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from fleetmap.errors import BadInput, NotEnoughCorrespondences
+from fleetmap.geometry import residuals
 
 
 def kabsch(
@@ -150,7 +151,7 @@ def _refit(src, dst, best: np.ndarray, tol: float, fit, k: int = 3):
     if best.sum() < k:
         return np.eye(4), np.zeros(len(src), bool)
     T = fit(src[best], dst[best])
-    inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < tol
+    inl = residuals(T, src, dst) < tol
     if inl.sum() >= best.sum():
         best = inl
         T = fit(src[best], dst[best])
@@ -207,7 +208,7 @@ def ransac_guided(
     found.sort(key=lambda f: -f[0])
     best = np.zeros(n, bool)
     for _, T in found[:keep]:
-        inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < tol
+        inl = residuals(T, src, dst) < tol
         if inl.sum() > best.sum():
             best = inl
     return _refit(src, dst, best, tol, kabsch)

@@ -224,13 +224,13 @@ def _own_inliers(fg, graph, own: list[int], initial, n_known: int, params) -> li
     tiny = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
     for r in fg.robots:
         sub.add(gtsam.PriorFactorPose3(fg.node(r, 0), initial.atPose3(fg.node(r, 0)), tiny))
-    first = sub.size()
     for k in range(1, n_known):  # the odometry (factor 0 is the reference's prior)
         sub.add(graph.at(k))
+    known = sub.size()
     for k in own:
         sub.add(graph.at(n_known + k))
-    _, w = _gnc(sub, initial, list(range(first + n_known - 1)), params)
-    return [n_known + k for k, wk in zip(own, w[first + n_known - 1 :], strict=True) if wk >= 0.5]
+    _, w = _gnc(sub, initial, list(range(known)), params)
+    return [n_known + k for k, wk in zip(own, w[known:], strict=True) if wk >= 0.5]
 
 
 def closure_residuals(sol_poses: dict[str, np.ndarray], closures: list[Closure]) -> np.ndarray:
