@@ -53,7 +53,9 @@ def _app(kind: str, data_dir: Path | None):
         from fleetmap.services.place_db.config import Settings
         from fleetmap.services.place_db.main import create_app
 
-        return create_app(Settings(data_dir=data_dir) if data_dir else Settings(), announce=False)
+        # the job asks for overlaps once every keyframe is in (`defer_overlaps`)
+        settings = Settings(data_dir=data_dir, defer_overlaps=True) if data_dir else Settings()
+        return create_app(settings, announce=False)
     from fleetmap.services.aligner.main import create_app as create_aligner
 
     return create_aligner(announce=False)  # on loopback, for this command only

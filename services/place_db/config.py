@@ -56,6 +56,10 @@ class Settings(BaseSettings):
     # coarse codebook upkeep
     auto_retrain: bool = True
     background_overlaps: bool = True
+    # overlap detection waits for the first overlaps request, so that every keyframe stored
+    # before it is compared with all the others: overlaps that do not follow the order the
+    # keyframes arrived in (the batch merge's embedded database; not for a live fleet)
+    defer_overlaps: bool = False
 
     def __init__(self, **values):
         refuse_flat_names("FLEETMAP_PLACE_DB_", CascadeParams, "CASCADE")

@@ -246,6 +246,7 @@ async def query(
 )
 async def overlaps(
     db: Database,
+    st: PlaceSettings,
     robot_a: str | None = None,
     robot_b: str | None = None,
     wait: float = Query(0.0, ge=0.0, le=600.0),
@@ -255,7 +256,10 @@ async def overlaps(
     `wait` seconds at most for keyframes still queued for overlap detection (an async wait:
     it holds no worker thread); `source` keeps only the cascade's pairs or only those
     co-visible under a registered link; "nominated": not overlaps but where to align when
-    none is verified (the BoW-nearest keyframe pairs, computed on request)."""
+    none is verified (the BoW-nearest keyframe pairs, computed on request). With
+    `defer_overlaps` the first request starts the detection of every keyframe queued."""
+    if st.defer_overlaps:
+        db.start_detection()
     end = time.monotonic() + wait
     while db.pending() and time.monotonic() < end:
         await asyncio.sleep(0.05)

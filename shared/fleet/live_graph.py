@@ -27,7 +27,7 @@ from fleetmap.fleet.correct import (
     FleetCorrection,
     bends,
     correct_fleet,
-    fit_closures,
+    link_trials,
     rigid_fleet,
     unbendable,
     with_fit_closures,
@@ -37,6 +37,7 @@ from fleetmap.fleet.state import read_graph, write_graph
 from fleetmap.fleet.types import Placement
 from fleetmap.fleet.view_choice import look_at
 from fleetmap.frame import Frame
+from fleetmap.geometry import invert
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +76,7 @@ class LiveGraph:
         self._frames: dict[int, Frame | None] = {}  # keyframe id -> frame (None: no pose)
         self._judged: dict[tuple[int, int], Closure | None] = {}  # ids (a, b) -> closure
         self._refined: dict[tuple[int, int], Closure] = {}
-        self._linked: dict[tuple, np.ndarray | None] = {}  # (ids, the fit) -> ICP's pose
+        self._linked: dict[tuple, tuple] = {}  # ids -> (ICP's start, its pose or None)
         self._solved: tuple | None = None
 
     def step(self, placement: Placement, states: dict) -> bool:
@@ -127,18 +128,19 @@ class LiveGraph:
         )  # fmt: skip
         if not bends(fleet, self.params):
             return fleet
-        links = (
-            self._links(kfs, poses, edges, deadline) if self._refine(kfs, index, deadline) else None
-        )
-        if links is None:
+        if not self._refine(kfs, index, deadline):
             return None
         present = self._present(index)
         refined = [self._indexed(self._refined.get(self._key(c), c), index) for c in present]
-        refined += links
-        return correct_fleet(
-            kfs, placed, edges, [], ref, self.params,
-            closures=with_fit_closures(refined, overlap_pairs, poses, edges),
-        )  # fmt: skip
+        for _ in range(self.params.link_rounds):  # the links' ICPs from the last solution
+            links = self._links(kfs, poses, edges, deadline, fleet.solution.poses)
+            if links is None:
+                return None
+            fleet = correct_fleet(
+                kfs, placed, edges, [], ref, self.params,
+                closures=with_fit_closures(refined + links, overlap_pairs, poses, edges),
+            )  # fmt: skip
+        return fleet
 
     # --- keyframes and candidates -------------------------------------------------------
 
@@ -213,10 +215,10 @@ class LiveGraph:
         trial = dataclasses.replace(c, robot_a="a", i=0, robot_b="b", j=0)
         return refine_with_depth([trial], one, params)[0]
 
-    def _links(self, kfs: dict, poses: dict, edges: dict, deadline: float) -> list | None:
-        """The depth closures at the keyframe pairs co-visible under the robots' fits (as
-        `fleetmap.fleet.correct.link_closures`), each tried once per fit; None while some
-        are left at the deadline."""
+    def _links(self, kfs: dict, poses: dict, edges: dict, deadline: float, solved: dict):
+        """The depth closures at the keyframe pairs co-visible under the robots' fits, ICP
+        started from the `solved` graph's poses (as `fleetmap.fleet.correct.link_closures`),
+        each start tried once; None while some are left at the deadline."""
         index = {k.kf_id: (r, i) for r, v in kfs.items() for i, k in enumerate(v)}
         viewed = {k for r in kfs for k in self.db.view_ids(r)}
         pairs, robots = set(), sorted(kfs)
@@ -226,20 +228,20 @@ class LiveGraph:
                     if o.source == "link" and {o.kf_a, o.kf_b} <= viewed:
                         if o.kf_a in index and o.kf_b in index:
                             pairs.add((*index[o.kf_a], *index[o.kf_b]))
-        fits, cp = fit_closures(sorted(pairs), poses, edges), self.params.closure
-        if len(fits) > cp.max_links:
-            fits = [fits[k] for k in np.linspace(0, len(fits) - 1, cp.max_links).astype(int)]
+        cp = self.params.closure
+        fits = link_trials(sorted(pairs), poses, edges, cp, solved)
         icp, out = dataclasses.replace(cp, tol_m=cp.link_tol_m), []
         for c in fits:
             ids = (kfs[c.robot_a][c.i].kf_id, kfs[c.robot_b][c.j].kf_id)
-            key = (*ids, np.round(c.T_a_b, 3).tobytes())
-            if key not in self._linked:
+            start, done = self._linked.get(ids, (None, None))
+            if start is None or not _near(start, c.T_a_b):  # ICP from elsewhere: again
                 if time.monotonic() > deadline:
                     return None
-                done = self._icp(ids, dataclasses.replace(c, source="features"), icp)
-                self._linked[key] = done.T_a_b if done.source == "depth" else None
-            if self._linked[key] is not None:
-                out.append(dataclasses.replace(c, T_a_b=self._linked[key], source="depth"))
+                refined = self._icp(ids, c, icp)
+                start, done = c.T_a_b, refined.T_a_b if refined.source == "depth" else None
+                self._linked[ids] = start, done
+            if done is not None:
+                out.append(dataclasses.replace(c, T_a_b=done, source="depth"))
         return out
 
     def _present(self, index: dict) -> list[Closure]:
@@ -316,3 +318,10 @@ def stored_corrections(db, version: int) -> tuple[dict[str, StoredCorrection], d
             T[:, :3, :] = np.asarray(row["T_ref_map"]).reshape(-1, 3, 4)
             out[r] = StoredCorrection(np.asarray(row["stamps"]), np.asarray(row["looks"]), T)
     return out, g
+
+
+def _near(T: np.ndarray, U: np.ndarray, metres: float = 0.005, radians: float = 0.005) -> bool:
+    """Two relative poses close enough that ICP started from either ends the same."""
+    D = invert(T) @ U
+    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
+    return bool(np.linalg.norm(D[:3, 3]) < metres and angle < radians)

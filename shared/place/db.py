@@ -12,6 +12,7 @@ overlap either.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 
@@ -78,7 +79,18 @@ class PlaceDB(FleetAccess):
         self._links = LinkOverlaps(store, self.load_frame)
         self.upkeep = CodebookUpkeep(self.retrain_policy, self.index, store, self.follower)
         self._load()
+        self._detecting = threading.Lock()
+        self._started = False
         if background:
+            self.start_detection()
+
+    def start_detection(self) -> None:
+        """Detect the queued keyframes' overlaps in the background from now on (once; a
+        database opened with `background=False` holds them until this is called)."""
+        with self._detecting:
+            if self._started:
+                return
+            self._started = True
             self.worker.start()
             if self.follower is not None:
                 self.follower.start()
@@ -235,20 +247,6 @@ class PlaceDB(FleetAccess):
                 ka, sa, kb, sb = kb, sb, ka, sa
             out.append(Overlap(robot_a, ka, sa, robot_b, kb, sb, r.inliers, r.matches, r.source))
         return sorted(out, key=lambda o: (o.stamp_a, o.stamp_b))
-
-    def overlap_graph(self) -> list[dict]:
-        """Every robot pair with verified overlaps: count, best and total inliers."""
-        merged: dict[tuple[str, str], list[int]] = {}
-        for ra, rb, n, best, total in self.store.overlap_counts():
-            names = self.store.robot_name(ra), self.store.robot_name(rb)
-            if None in names:
-                continue  # deleted meanwhile
-            acc = merged.setdefault(tuple(sorted(names)), [0, 0, 0])
-            acc[0], acc[1], acc[2] = acc[0] + n, max(acc[1], best), acc[2] + total
-        return [
-            {"robot_a": a, "robot_b": b, "pairs": n, "best_inliers": best, "total_inliers": total}
-            for (a, b), (n, best, total) in sorted(merged.items())
-        ]
 
     def pending(self) -> int:
         """Keyframes still waiting for overlap detection."""

@@ -56,3 +56,17 @@ class FleetAccess:
     def live_cas(self, key: str, old: str | None, new: str) -> bool:
         """Write `new` only if the row still holds `old` (compare-and-set)."""
         return self.store.live_cas(key, old, new)
+
+    def overlap_graph(self) -> list[dict]:
+        """Every robot pair with verified overlaps: count, best and total inliers."""
+        merged: dict[tuple[str, str], list[int]] = {}
+        for ra, rb, n, best, total in self.store.overlap_counts():
+            names = self.store.robot_name(ra), self.store.robot_name(rb)
+            if None in names:
+                continue  # deleted meanwhile
+            acc = merged.setdefault(tuple(sorted(names)), [0, 0, 0])
+            acc[0], acc[1], acc[2] = acc[0] + n, max(acc[1], best), acc[2] + total
+        return [
+            {"robot_a": a, "robot_b": b, "pairs": n, "best_inliers": best, "total_inliers": total}
+            for (a, b), (n, best, total) in sorted(merged.items())
+        ]

@@ -126,7 +126,7 @@ def test_one_wrong_loop_closure_is_rejected(drifted, keyframes):
     corr = {r: report["robots"][r]["drift_correction"] for r in "AB"}
     placed = {r: np.array(corr[r]["rigid_placement"]) for r in "AB"}
     overlaps = report["overlaps"]  # verified and co-visible (link) keyframe pairs
-    closures = fleet_closures(kfs, edges, overlaps)
+    closures = fleet_closures(kfs, placed, edges, overlaps, "A")
     right = correct_fleet(kfs, placed, edges, overlaps, "A", closures=closures)
     # a look-alike place: A's keyframe 20 "seen" 0.5 m and 10 degrees from B's keyframe 120
     a = np.deg2rad(10)
