@@ -149,8 +149,9 @@ def verify_pair(
 
     kp_*: ndarray of shape (N, 2) pixel positions; desc_*: ndarray of shape (N, 128).
     points_*: optional (points (N, 3), valid (N,)) of each feature in its robot's map;
-    with both, a pair with `min_inliers_3d_check` epipolar inliers is also verified when
-    `min_rigid_inliers` of them agree with one rigid motion. `matches`: the descriptor
+    with both, a pair the epipolar test did not verify but with `min_inliers_3d_check`
+    epipolar inliers is verified when `min_rigid_inliers` of them agree with one rigid
+    motion. `matches`: the descriptor
     matches at `params.ratio`, when already computed.
     """
     t0 = time.perf_counter()
@@ -176,7 +177,12 @@ def verify_pair(
     k = int(inl.sum())
     ok = k >= params.min_epipolar_inliers and k >= params.min_inlier_ratio * n
     rigid = -1
-    if points_a is not None and points_b is not None and k >= params.min_inliers_3d_check:
+    if (
+        not ok
+        and points_a is not None
+        and points_b is not None
+        and k >= params.min_inliers_3d_check
+    ):
         rigid = _rigid_support(ia[inl], ib[inl], points_a, points_b, params.rigid_tol_m)
         ok = (ok or rigid >= params.min_rigid_inliers) and k >= params.min_inlier_ratio * n
     return Verification(n, k, ia[inl], ib[inl], ok, *ms, rigid_inliers=rigid)
