@@ -129,7 +129,7 @@ def start_services(stack: contextlib.ExitStack, place_db: str | None, aligner: s
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
         place_db, first = stack.enter_context(embedded_service("place-db", tmp))
         waits["place-db"] = lambda: (first(), default_kernel_threads())
-    if aligner is None:  # its imports (torch, Open3D) after the place database's: needed later
+    if aligner is None:  # its imports (Open3D) after the place database's: needed later
         aligner, waits["aligner"] = stack.enter_context(embedded_service("aligner", after=first))
     return Services(place_db, aligner, waits)
 

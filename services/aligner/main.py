@@ -25,7 +25,9 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         import open3d  # noqa: F401  heavy import at start-up, not on the first request
-        import torch  # noqa: F401
+
+        # not torch (1.3-1.5 s of a core): only the MLP needs it, tried where an affine map
+        # beats the rigid fit (`fleetmap.align.pipeline._try_mlp`), and it imports it then
 
         app.state.clouds = OrderedDict()
         app.state.pixels = PixelBudget(
