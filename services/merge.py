@@ -29,7 +29,7 @@ from fleetmap.fleet.correct import correct_fleet
 from fleetmap.fleet.placement import place_fleet
 from fleetmap.fleet.report import OVERLAP_KEYS, merge_parameters, merge_report
 from fleetmap.fleet.types import DEFAULT_MERGE, Fit, MergeParams
-from fleetmap.fleet.view_choice import overlaps_to_align, pair_views
+from fleetmap.fleet.view_choice import local_views, overlaps_to_align, pair_views
 from fleetmap.mapcloud import MapCloud
 from fleetmap.services.embedded import check_reachable, start_services, warm_up
 from fleetmap.services.foxglove import write_fleet_mcap
@@ -215,11 +215,17 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
 
     def one(item) -> Fit | None:
         (a, b), pairs = item
-        views = pair_views(pairs, recs_by_id[a], recs_by_id[b], kf_index[a], kf_index[b], max_views)
+        chosen = (pairs, recs_by_id[a], recs_by_id[b], kf_index[a], kf_index[b], max_views)
+        views = pair_views(*chosen)
         if not views:
             return None
-        fit = Fit.from_json(al.align(views), a, b)
-        fit.views = [len({id(v) for v, _ in views}), len({id(v) for _, v in views})]
+        fit = aligned(al, views, a, b)
+        if not fit.merged and (local := local_views(*chosen)):  # a map that bends: again
+            again = aligned(al, local, a, b)
+            if again.merged:
+                again.reason += " (views along the best overlap's path)"
+                return again
+            fit.reason += f"; views along the best overlap's path: {again.reason}"
         return fit
 
     edges, fits, links = {}, [], {}
@@ -240,6 +246,13 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
                 links[len(fits) - 1] = linker.submit(db.put_link, a, b, fit.T_a_b)
     linker.shutdown(wait=False)  # the submitted links still run
     return edges, fits, links
+
+
+def aligned(al: AlignerClient, views: list, a: str, b: str) -> Fit:
+    """The aligner's fit of robots a and b from the view pairs, with the views' counts."""
+    fit = Fit.from_json(al.align(views), a, b)
+    fit.views = [len({id(v) for v, _ in views}), len({id(v) for _, v in views})]
+    return fit
 
 
 def link_overlaps(db: PlaceDBClient, edges: dict, fits: list[Fit], links: dict) -> list[dict]:

@@ -51,6 +51,8 @@ SHARED = {
 APART = (
     # only the drifted copies (hard links), not the module's drifted merge
     "tests/e2e/test_fleet_drift.py::test_bent_maps_merge_from_overlaps_that_once_refused",
+    "tests/e2e/test_fleet_drift.py::"
+    "test_a_map_that_holds_one_place_twice_merges_from_views_along_its_path",
     # its own place database: not the module's two replicas (`live`)
     "tests/e2e/test_live_map.py::test_restart_mid_stream_loses_nothing_and_resumes_the_map",
 )

@@ -27,6 +27,11 @@ class ViewParams:
 
     max_views: int = 12
     radius_m: float = 3.0
+    # a refused pair is aligned again from the views along its best overlap's path, within
+    # the path over which the fleet graph's drift model (1 deg/m of yaw, 1 % scale:
+    # `GraphParams`) bends a map by the aligner's match tolerance (8 cm): 2.5 m
+    # (`view_choice.local_views`)
+    local_path_m: float = 2.5
 
 
 @dataclass(frozen=True)

@@ -96,6 +96,52 @@ def load_view(rec: Recording, i: int) -> RGBDView:
     )
 
 
+def path_window(rec: Recording, keyframes: list[int], i: int, length_m: float) -> list[int]:
+    """The keyframes within `length_m` of frame i along the robot's path."""
+    P = np.array([_position(f) for f in rec.frames])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    return [k for k in keyframes if abs(s[k] - s[i]) <= length_m]
+
+
+def local_views(
+    overlaps: list[dict],
+    rec_a: Recording,
+    rec_b: Recording,
+    keyframes_a: list[int] | None,
+    keyframes_b: list[int] | None,
+    max_views: int,
+    length_m: float = DEFAULT_VIEWS.local_path_m,
+) -> list[tuple[RGBDView, RGBDView]]:
+    """The pairs to align again when the first views were refused: each robot's views
+    among its keyframes within `length_m` along its path of the best overlap, seeded by
+    the overlaps there; [] where that chooses the views `pair_views` chose. A map that
+    bends holds one place twice where the robot came back (HoloLens walk, 1 deg/m: A's
+    start and end 0.4 m apart), and views of both give the matches one alignment and the
+    geometry another."""
+    if not overlaps:
+        return []
+    best = max(overlaps, key=lambda o: o["inliers"])
+    ia, ib = frame_at(rec_a, best["stamp_a"]), frame_at(rec_b, best["stamp_b"])
+    kfa = path_window(rec_a, keyframes_a or list(range(len(rec_a))), ia, length_m)
+    kfb = path_window(rec_b, keyframes_b or list(range(len(rec_b))), ib, length_m)
+    near = [
+        o
+        for o in overlaps
+        if frame_at(rec_a, o["stamp_a"]) in {ia, *kfa}
+        and frame_at(rec_b, o["stamp_b"]) in {ib, *kfb}
+    ]
+    first = select_views(overlaps, rec_a, rec_b, keyframes_a, keyframes_b, max_views)
+    chosen = select_views(near, rec_a, rec_b, kfa, kfb, max_views)
+    if chosen == first:
+        return []
+    return _paired(rec_a, rec_b, *chosen)
+
+
+def _paired(rec_a: Recording, rec_b: Recording, ia: list[int], ib: list[int]) -> list:
+    va, vb = [load_view(rec_a, i) for i in ia], [load_view(rec_b, j) for j in ib]
+    return [(x, y) for x in va for y in vb]
+
+
 def pair_views(
     overlaps: list[dict],
     rec_a: Recording,
@@ -106,6 +152,6 @@ def pair_views(
 ) -> list[tuple[RGBDView, RGBDView]]:
     """The RGB-D pairs to send the aligner for two robots: every selected view of A with
     every selected view of B (`select_views`); [] without a verified overlap."""
-    ia, ib = select_views(overlaps, rec_a, rec_b, keyframes_a, keyframes_b, max_views)
-    va, vb = [load_view(rec_a, i) for i in ia], [load_view(rec_b, j) for j in ib]
-    return [(x, y) for x in va for y in vb]
+    return _paired(
+        rec_a, rec_b, *select_views(overlaps, rec_a, rec_b, keyframes_a, keyframes_b, max_views)
+    )

@@ -19,7 +19,7 @@ from fleetmap.extract import keyframe_indices
 from fleetmap.fleet.closures import Closure
 from fleetmap.fleet.correct import correct_fleet, fleet_closures
 from fleetmap.fleet.drift import write_drifted
-from fleetmap.fleet.view_choice import frame_at, load_view, pair_views
+from fleetmap.fleet.view_choice import frame_at, load_view, local_views, pair_views
 from fleetmap.geometry import apply, displacement_rms, invert
 from fleetmap.mapcloud import ViewsCloud
 from fleetmap.place.store import DB_FILE
@@ -182,6 +182,35 @@ def test_bent_maps_merge_from_overlaps_that_once_refused(drifted_copies):
     T_local = Ta @ invert(truth["A"][ia]) @ truth["B"][ib] @ invert(Tb)
     pb = np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
     assert displacement_rms(res.T_a_b, T_local, pb) < 0.15
+
+
+def test_a_map_that_holds_one_place_twice_merges_from_views_along_its_path(hololens, tmp_path):
+    """Drift of another draw (the drift bench's seed 1 at 1 deg/m) bends A's map so that
+    its start and its end, which see one place, lie 0.4 m apart. The overlaps the place
+    database verifies there send views of both: the matches agree with A's end, the
+    geometry with its start, and the gate refuses (10 inliers, and 583 matches agree with
+    an alignment 0.28 m away). Views along A's and B's paths near the best overlap
+    (`local_views`) agree, and merge where the truth is there."""
+    T_a_b = np.loadtxt(hololens / "T_a_b.txt")
+    truth, recs = {}, {}
+    for k, (r, name, T_ref) in enumerate((("A", "hl_a", np.eye(4)), ("B", "hl_b", T_a_b))):
+        true = write_drifted(hololens / name, tmp_path / r, 1.0, 0.01, seed=10 + k)
+        truth[r], recs[r] = [T_ref @ T for T in true], read_recording(tmp_path / r, robot_id=r)
+    ov = [  # as the merge's place database verified them
+        {"stamp_a": a, "stamp_b": b, "inliers": n}
+        for a, b, n in ((9007.0, 9502.4, 13), (9036.8, 9500.0, 29), (9037.0, 9500.0, 47))
+        + ((9037.2, 9500.0, 64), (9037.2, 9500.0, 57))
+    ]
+    kfi = [keyframe_indices(recs[r]) for r in "AB"]
+    chosen = (ov, recs["A"], recs["B"], *kfi, 12)
+    assert not align_views(pair_views(*chosen)).merged  # the views of both ends
+    res = align_views(local_views(*chosen))
+    assert res.merged, res.reason
+    ia, ib = frame_at(recs["A"], 9037.2), frame_at(recs["B"], 9500.0)
+    Ta, Tb = recs["A"].frames[ia].T_map_cam, recs["B"].frames[ib].T_map_cam
+    T_local = Ta @ invert(truth["A"][ia]) @ truth["B"][ib] @ invert(Tb)
+    pb = np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
+    assert displacement_rms(res.T_a_b, T_local, pb) < 0.05
 
 
 def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
