@@ -165,3 +165,25 @@ def test_links_validate_and_add_co_visible_pairs(client, sun3d_frames, sun3d):
     assert len(only) == n_cascade and all(p["source"] == "cascade" for p in only)
     (link,) = client.get("/links").json()
     np.testing.assert_allclose(link["transform"], T)
+
+
+def test_deferred_overlaps_do_not_follow_the_order_of_arrival(sun3d_frames, tmp_path):
+    """`defer_overlaps` (the batch merge's database): nothing is detected before the first
+    overlaps request, then every keyframe is compared with all the others, so robot_a's
+    keyframes first or robot_b's first give the same pairs. Detected as they arrive, the
+    first robot's keyframes would find nothing and the second's their best among the
+    first's: other pairs."""
+    found = []
+    for k, order in enumerate((("robot_a", "robot_b"), ("robot_b", "robot_a"))):
+        st = Settings(data_dir=tmp_path / str(k), max_body_bytes=200_000, defer_overlaps=True)
+        with TestClient(create_app(st)) as c:
+            for robot in order:
+                for d in sun3d_frames[robot]:
+                    assert post_frame(c, robot, d).status_code == 201
+            posted = sum(len(v) for v in sun3d_frames.values())
+            assert c.get("/stats").json()["pending"] == posted  # none detected yet
+            pair = {"robot_a": "robot_a", "robot_b": "robot_b", "wait": 300}
+            ov = c.get("/overlaps", params=pair).json()
+            assert ov["pending"] == 0
+            found.append(sorted((p["stamp_a"], p["stamp_b"], p["inliers"]) for p in ov["overlaps"]))
+    assert found[0] and found[0] == found[1]
