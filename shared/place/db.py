@@ -238,15 +238,18 @@ class PlaceDB(FleetAccess):
         return run_cascade(frame, self.index, self.load_frame, self.params, flt)
 
     def overlaps(self, robot_a: str, robot_b: str) -> list[Overlap]:
-        """Verified keyframe pairs between two robots, oriented a -> b, by stamp of a."""
+        """Verified keyframe pairs between two robots, oriented a -> b, by stamp of a; a pair
+        each keyframe found as the other's winner once, with the larger count of inliers."""
         ra, rb = self._code(robot_a), self._code(robot_b)
-        out = []
+        out: dict[tuple, Overlap] = {}
         for r in self.store.overlap_rows(ra, rb):
             ka, sa, kb, sb = r.kf_a, r.stamp_a, r.kf_b, r.stamp_b
             if r.robot_a != ra:
                 ka, sa, kb, sb = kb, sb, ka, sa
-            out.append(Overlap(robot_a, ka, sa, robot_b, kb, sb, r.inliers, r.matches, r.source))
-        return sorted(out, key=lambda o: (o.stamp_a, o.stamp_b))
+            o = Overlap(robot_a, ka, sa, robot_b, kb, sb, r.inliers, r.matches, r.source)
+            if (ka, kb, r.source) not in out or out[(ka, kb, r.source)].inliers < r.inliers:
+                out[(ka, kb, r.source)] = o
+        return sorted(out.values(), key=lambda o: (o.stamp_a, o.stamp_b))
 
     def pending(self) -> int:
         """Keyframes still waiting for overlap detection."""
