@@ -7,8 +7,9 @@ verified overlaps of every robot pair once a second. A pair is aligned on new ev
 first overlaps, more after a refusal, many more (`refine_factor`) since its merge; once the
 robots are quiet, a pair with no verified overlap once from the nominated keyframe pairs
 (`fleetmap.place.nominate`), again only after either robot gained keyframes. Its views are
-the stored RGB-D views near its keyframes, chosen as `fleetmap merge` chooses them
-(`fleetmap.fleet.view_choice.spread`). A gated result becomes a link (`PlaceDB.add_link`);
+the stored RGB-D views near its keyframes, chosen as `fleetmap merge` chooses them, and
+refused ones again along both paths near the best overlap (`fleetmap.fleet.live_views`).
+A gated result becomes a link (`PlaceDB.add_link`);
 pair states and the placement are stored (`fleetmap.fleet.state`): a restart aligns nothing
 twice. The worker reads and writes the place database only through `PlaceDB`.
 """
@@ -26,6 +27,7 @@ import numpy as np
 
 from fleetmap.errors import Conflict, FleetmapError
 from fleetmap.fleet.live_graph import LiveGraph
+from fleetmap.fleet.live_views import StoredViews
 from fleetmap.fleet.merge_rules import (
     copier_robots,
     due_order,
@@ -56,9 +58,7 @@ from fleetmap.fleet.types import (
     state_transform,
     transform_to_json,
 )
-from fleetmap.fleet.view_choice import look_at, spread
 from fleetmap.place.nominate import nominated_overlaps
-from fleetmap.view import stored_view
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ class LiveMap:
 
     def __init__(self, db, align: Callable[[list], dict], params: LiveParams | None = None):
         self.db, self.align, self.params = db, align, params or LiveParams()
-        self._poses: dict[int, np.ndarray] = {}  # keyframe id -> T_map_cam (never changes)
+        self.views = StoredViews(db)  # the views to align, keyframe poses read once
         self._backoff: dict[str, float] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -328,24 +328,27 @@ class LiveMap:
         first = before is None and not nominated
         k = self.params.first_views if first else self.params.max_views
         st["budget"] = k  # views per robot this fit could use
-        views = [
-            self._views(a, [o.kf_a for o in ranked], k),
-            self._views(b, [o.kf_b for o in ranked], k),
+        ids = [
+            self.views.choose(a, [o.kf_a for o in ranked], k),
+            self.views.choose(b, [o.kf_b for o in ranked], k),
         ]
-        if not all(views):
-            missing = [r for r, v in zip((a, b), views, strict=True) if not v]
+        if not all(ids):
+            missing = [r for r, v in zip((a, b), ids, strict=True) if not v]
             reason = f"no RGB-D view stored near the overlaps for {', '.join(missing)}"
             st["views"] = list(self._view_counts(a, b))
             return st | {"status": "no_views", "reason": reason}
-        st["views"] = [len(v) for v in views]
-        try:
-            answer = self.align([(x, y) for x in views[0] for y in views[1]])
-        except FleetmapError as exc:  # the aligner down or refusing the request
-            self._backoff[pair_key(a, b)] = time.monotonic() + self.params.failure_backoff_s
-            raise RuntimeError(f"aligner failed on {a}-{b}: {exc}") from exc
-        fit = Fit.from_json(answer, a, b)
+        st["views"] = [len(v) for v in ids]
+        fit = self._fit(a, b, ids)
+        if not fit.merged and not nominated and (local := self.views.local(a, b, ranked, k, ids)):
+            again = self._fit(a, b, local)  # a map that bends: its views near the best overlap
+            where = "views along the best overlap's path"
+            if again.merged:
+                fit, st["views"] = again, [len(v) for v in local]
+                fit.reason += f" ({where})"
+            else:
+                fit.reason += f"; {where}: {again.reason}"
         if fit.merged:
-            log.info("live map: %s-%s merged (%d views each side)", a, b, len(views[0]))
+            log.info("live map: %s-%s merged (%d views each side)", a, b, st["views"][0])
             T_a_b = transform_to_json(fit.T_a_b)
             new = st | fit.state_fields() | {"status": "merged", "transform": T_a_b}
             return refit_or_kept(before, new, lambda: [whole_map_views(self.db, r) for r in (a, b)])
@@ -356,24 +359,15 @@ class LiveMap:
         st["refusals"] = (before or {}).get("refusals", 0) + 1  # its back-off doubles
         return st | fit.state_fields() | {"status": "refused"}
 
-    def _views(self, robot: str, seeds: list[int], max_views: int) -> list:
-        """The robot's views to align: verified keyframes first, spread as in a batch merge."""
-        with_view = self.db.view_ids(robot)
-        if not with_view:
-            return []
-        have = set(with_view)
-        seed = [k for k in dict.fromkeys(seeds) if k in have]
-        if not seed:
-            return []
-        cand = list(dict.fromkeys(seed + with_view))
-        look = np.array([look_at(self._pose(k)) for k in cand])
-        chosen = sorted(cand[i] for i in spread(len(seed), look, max_views))
-        return [stored_view(self.db.load_frame(k), *self.db.view_bytes(k)) for k in chosen]
-
-    def _pose(self, kf_id: int) -> np.ndarray:
-        if kf_id not in self._poses:
-            self._poses[kf_id] = self.db.load_frame(kf_id).T_map_cam
-        return self._poses[kf_id]
+    def _fit(self, a: str, b: str, ids: list[list[int]]) -> Fit:
+        """The aligner's answer for A's and B's stored views of keyframes `ids`."""
+        views = [self.views.load(x) for x in ids]
+        try:
+            answer = self.align([(x, y) for x in views[0] for y in views[1]])
+        except FleetmapError as exc:  # the aligner down or refusing the request
+            self._backoff[pair_key(a, b)] = time.monotonic() + self.params.failure_backoff_s
+            raise RuntimeError(f"aligner failed on {a}-{b}: {exc}") from exc
+        return Fit.from_json(answer, a, b)
 
     # --- placing the fleet ---------------------------------------------------------------
 

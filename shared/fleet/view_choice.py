@@ -117,9 +117,9 @@ def local_views(
     the overlaps there; [] where that chooses the views `pair_views` chose. A map that
     bends holds one place twice where the robot came back (HoloLens walk, 1 deg/m: A's
     start and end 0.4 m apart), and views of both give the matches one alignment and the
-    geometry another. Only from verified overlaps: nominated keyframe pairs (no verified
-    evidence) get one try."""
-    overlaps = [o for o in overlaps if o.get("source", "cascade") != "nominated"]
+    geometry another. Only from the cascade's verified overlaps: nominated keyframe pairs
+    (no verified evidence) get one try, and a link's co-visible pairs count no inliers."""
+    overlaps = [o for o in overlaps if o.get("source", "cascade") == "cascade"]
     if not overlaps:
         return []
     best = max(overlaps, key=lambda o: o["inliers"])

@@ -280,9 +280,41 @@ def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
         assert len(pts) and set(np.unique(idx)) == {0, 1}
         _scene_cloud_is_corrected(db, m, pts[idx == 1])
         assert not graph.step(read_placement(db), load_states(db))  # nothing new: no solve
+        _live_views_along_the_path(db, true_kf)
     finally:
         db.close()
     _page_draws_corrected_clouds(tmp_path)
+
+
+def _live_views_along_the_path(db, true_kf: dict) -> None:
+    """The merge worker's second choice of views for a refused pair (`StoredViews.local`):
+    only keyframes within 2.5 m along each robot's path of the best overlap, where the
+    first choice spans both ends of A's bent map; aligned, they merge where the truth is."""
+    from fleetmap.fleet.live_views import StoredViews
+
+    verified = [o for o in db.overlaps("A", "B") if o.source == "cascade"]  # as the worker's
+    views, ranked = StoredViews(db), sorted(verified, key=lambda o: -o.inliers)
+    first = [views.choose(r, [getattr(o, f"kf_{r.lower()}") for o in ranked], 12) for r in "AB"]
+    ids = views.local("A", "B", ranked, 12, first)
+    assert ids is not None and all(ids)
+    order = {r: db.keyframe_ids(r) for r in "AB"}
+    path = {}
+    for r in "AB":  # each robot's path length at its keyframes
+        P = np.array([views.pose(k)[:3, 3] for k in order[r]])
+        s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+        path[r] = dict(zip(order[r], s, strict=True))
+    best = {"A": ranked[0].kf_a, "B": ranked[0].kf_b}
+    for r, chosen in zip("AB", ids, strict=True):
+        assert max(abs(path[r][k] - path[r][best[r]]) for k in chosen) <= 2.5
+    assert max(abs(path["A"][k] - path["A"][best["A"]]) for k in first[0]) > 2.5
+    va, vb = ([v.decoded() for v in views.load(x)] for x in ids)
+    res = align_views([(x, y) for x in va for y in vb])
+    assert res.merged, res.reason
+    ka, kb = order["A"].index(best["A"]), order["B"].index(best["B"])
+    Ta, Tb = views.pose(best["A"]), views.pose(best["B"])
+    T_local = Ta @ invert(true_kf["A"][ka]) @ true_kf["B"][kb] @ invert(Tb)
+    pb = np.asarray(ViewsCloud([vb[ids[1].index(best["B"])]]).at(0.05).points)
+    assert displacement_rms(res.T_a_b, T_local, pb) < 0.05
 
 
 def _scene_cloud_is_corrected(db, m: dict, full_b: np.ndarray) -> None:
