@@ -121,6 +121,7 @@ def merge_parameters(params: MergeParams, vocab_path, services: dict | None = No
         "pcd": params.pcd,
         "correct_drift": params.correct_drift,
         "view_radius_m": params.views.radius_m,
+        "view_local_path_m": params.views.local_path_m,  # a refused pair's second views
         "align_method": "default",
         "cycles": dataclasses.asdict(CycleParams()),
     }
