@@ -176,13 +176,17 @@ def test_bent_maps_merge_from_overlaps_that_once_refused(drifted_copies):
     kfi = {r: keyframe_indices(recs[r]) for r in "AB"}
     res = align_views(pair_views(ov, recs["A"], recs["B"], kfi["A"], kfi["B"], 12))
     assert res.merged, res.reason
-    # where the overlap is, the fit places B's view as its true pose does (bent maps: a
-    # rigid fit holds at one place at best)
-    ia, ib = frame_at(recs["A"], 9037.2), frame_at(recs["B"], 9500.0)
+    # where the overlap is, the fit places B's view as its true pose does
+    assert displacement_rms(res.T_a_b, *local_truth(recs, truth, 9037.2, 9500.0)) < 0.15
+
+
+def local_truth(recs: dict, truth: dict, stamp_a: float, stamp_b: float) -> tuple:
+    """B's map frame into A's as the truth has it at the frames (stamp_a, stamp_b) (bent
+    maps: a rigid fit holds at one place at best), and B's view cloud there."""
+    ia, ib = frame_at(recs["A"], stamp_a), frame_at(recs["B"], stamp_b)
     Ta, Tb = recs["A"].frames[ia].T_map_cam, recs["B"].frames[ib].T_map_cam
     T_local = Ta @ invert(truth["A"][ia]) @ truth["B"][ib] @ invert(Tb)
-    pb = np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
-    assert displacement_rms(res.T_a_b, T_local, pb) < 0.15
+    return T_local, np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
 
 
 def test_a_map_that_holds_one_place_twice_merges_from_views_along_its_path(hololens, tmp_path):
@@ -210,11 +214,7 @@ def test_a_map_that_holds_one_place_twice_merges_from_views_along_its_path(holol
     assert not align_views(pair_views(*chosen), first_look).merged
     res = align_views(local_views(*chosen))
     assert res.merged, res.reason
-    ia, ib = frame_at(recs["A"], 9037.2), frame_at(recs["B"], 9500.0)
-    Ta, Tb = recs["A"].frames[ia].T_map_cam, recs["B"].frames[ib].T_map_cam
-    T_local = Ta @ invert(truth["A"][ia]) @ truth["B"][ib] @ invert(Tb)
-    pb = np.asarray(ViewsCloud([load_view(recs["B"], ib)]).at(0.05).points)
-    assert displacement_rms(res.T_a_b, T_local, pb) < 0.05
+    assert displacement_rms(res.T_a_b, *local_truth(recs, truth, 9037.2, 9500.0)) < 0.05
 
 
 def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
