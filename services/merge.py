@@ -83,6 +83,7 @@ def run_merge(
         clouds, parts = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)
         clouds = voxelising(clouds, voxel)  # for merged.ply, while the robots are aligned
         with timed(timing, "overlaps"):
+            detected(db, sum(map(len, kf_index.values())), quiet)
             overlaps, by_pair = find_overlaps(db, ids)
         with timed(timing, "start"):
             al = stack.enter_context(AlignerClient(services.ready("aligner"), 900, token))
@@ -190,6 +191,19 @@ def ingest(
         timing["ingest"] = time.perf_counter() - t
     bar.close()
     return {r: MapCloud.from_keyframes(kfs) for r, kfs in parts.items()}, parts
+
+
+def detected(db, total: int, quiet: bool, timeout_s: float = 600.0) -> None:
+    """Wait for the place database's overlap detection of the `total` keyframes posted (the
+    embedded database starts it at this first overlaps request), with a progress bar."""
+    db.overlap_graph()  # starts a deferred detection
+    bar = tqdm(total=total, desc="overlaps", unit="kf", disable=quiet)
+    end = time.monotonic() + timeout_s
+    while (pending := db.stats()["pending"]) and time.monotonic() < end:
+        bar.update(max(total - pending, 0) - bar.n)
+        time.sleep(0.2)
+    bar.update(total - bar.n)
+    bar.close()
 
 
 def find_overlaps(db, ids: list[str]) -> tuple[list[dict], dict]:
