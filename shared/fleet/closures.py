@@ -152,24 +152,29 @@ def find_closures(
 
 
 def refine_with_depth(
-    closures: list[Closure], keyframes: dict[str, list], params: ClosureParams = ClosureParams()
+    closures: list[Closure],
+    keyframes: dict[str, list],
+    params: ClosureParams = ClosureParams(),
+    cache: dict | None = None,
 ) -> list[Closure]:
     """Each feature closure refined by point-to-plane ICP between its two keyframes' depth
     clouds (in the cameras' frames), kept where ICP overlaps well and moves the fit by less
     than the 3D tolerance (else the feature fit stands). keyframes[R]: the extracted
-    `Keyframe`s (map-cloud points in the robot's map frame)."""
+    `Keyframe`s (map-cloud points in the robot's map frame); `cache`: the keyframe clouds
+    built (by robot, keyframe and voxel), kept between calls by the caller."""
     from threadpoolctl import threadpool_limits
 
     from fleetmap.mapcloud import MapCloud, icp
 
-    cache: dict[tuple[str, int], object] = {}
+    cache = {} if cache is None else cache
+    voxel = params.tol_m / 2
 
     def cloud(r: str, i: int):
-        if (r, i) not in cache:
+        if (r, i, voxel) not in cache:
             kf = keyframes[r][i]
             pts = apply(invert(kf.frame.T_map_cam), kf.points.astype(np.float64))
-            cache[(r, i)] = MapCloud(pts, None).o3d(params.tol_m / 2)
-        return cache[(r, i)]
+            cache[(r, i, voxel)] = MapCloud(pts, None).o3d(voxel)
+        return cache[(r, i, voxel)]
 
     out = []
     with threadpool_limits(1):  # many small problems: OpenMP threads only contend

@@ -200,6 +200,7 @@ def link_closures(
     edges: dict,
     params: ClosureParams,
     solved: dict[str, np.ndarray] | None = None,
+    clouds: dict | None = None,
 ) -> list[Closure]:
     """Depth closures at the keyframe pairs co-visible under the robots' fits ("link"
     overlaps, at most `params.max_links` of them, evenly spread): the relative pose there
@@ -211,7 +212,8 @@ def link_closures(
     pairs = sorted(overlap_pairs(by_source(overlaps, "link"), stamps))
     trial = link_trials(pairs, poses, edges, params, solved)
     icp = dataclasses.replace(params, tol_m=params.link_tol_m)
-    return [c for c in refine_with_depth(trial, keyframes, icp) if c.source == "depth"]
+    refined = refine_with_depth(trial, keyframes, icp, clouds)  # `clouds`: kept by the caller
+    return [c for c in refined if c.source == "depth"]
 
 
 def link_trials(pairs, poses: dict, edges: dict, params: ClosureParams, solved=None):
@@ -314,9 +316,10 @@ def correct_fleet(
     quick = solve(with_fit_closures(found, pairs, poses, edges))
     if not bends(quick, params):
         return quick
-    refined, fleet = refine_with_depth(found, keyframes, params.closure), quick
+    clouds: dict = {}  # each keyframe's cloud built once for every round's ICPs
+    refined, fleet = refine_with_depth(found, keyframes, params.closure, clouds), quick
     for _ in range(params.link_rounds):  # the links' ICPs from the last solution
         solved = fleet.solution.poses
-        links = link_closures(keyframes, overlaps, poses, edges, params.closure, solved)
+        links = link_closures(keyframes, overlaps, poses, edges, params.closure, solved, clouds)
         fleet = solve(with_fit_closures(refined + links, pairs, poses, edges))
     return fleet
