@@ -291,10 +291,14 @@ def test_the_live_map_corrects_drift(drifted, keyframes, vocabulary, tmp_path):
 
 
 def _live_views_along_the_path(db, true_kf: dict) -> None:
-    """The merge worker's second choice of views for a refused pair (`StoredViews.local`):
-    only keyframes within 2.5 m along each robot's path of the best overlap, where the
-    first choice spans both ends of A's bent map; aligned, they merge where the truth is."""
+    """The merge worker (`LiveMap.attempt`) on a pair whose first views the gate refuses
+    (here a gate asking the impossible on the first call) aligns it again from its second
+    choice (`StoredViews.local`): only keyframes within 2.5 m along each robot's path of
+    the best overlap, where the first choice spans both ends of A's bent map. The pair
+    merges from those, where the truth is, and its state says how."""
     from fleetmap.fleet.live_views import StoredViews
+    from fleetmap.fleet.merge_worker import LiveMap
+    from fleetmap.fleet.types import state_transform
 
     verified = [o for o in db.overlaps("A", "B") if o.source == "cascade"]  # as the worker's
     views, ranked = StoredViews(db), sorted(verified, key=lambda o: -o.inliers)
@@ -311,14 +315,26 @@ def _live_views_along_the_path(db, true_kf: dict) -> None:
     for r, chosen in zip("AB", ids, strict=True):
         assert max(abs(path[r][k] - path[r][best[r]]) for k in chosen) <= 2.5
     assert max(abs(path["A"][k] - path["A"][best["A"]]) for k in first[0]) > 2.5
-    va, vb = ([v.decoded() for v in views.load(x)] for x in ids)
-    res = align_views([(x, y) for x in va for y in vb])
-    assert res.merged, res.reason
+    sent = []
+
+    def align(pairs: list) -> dict:  # the aligner in this process; the first call refused
+        impossible = dataclasses.replace(DEFAULT_ALIGN, min_inliers=10**6, second_look=False)
+        sent.append(sorted({b.stamp for _, b in pairs}))
+        p = impossible if len(sent) == 1 else DEFAULT_ALIGN
+        return align_views([(a.decoded(), b.decoded()) for a, b in pairs], p).to_dict()
+
+    before = {"robot_a": "A", "robot_b": "B", "status": "refused", "attempts": 1, "at": 0.0}
+    st = LiveMap(db, align).attempt("A", "B", verified, before)
+    assert st["status"] == "merged" and st["reason"].endswith(
+        "(views along the best overlap's path)"
+    )
+    stamps_b = sorted(db.load_frame(k).stamp for k in ids[1])
+    assert len(sent) == 2 and sent[1] == stamps_b  # the second choice's views of B
     ka, kb = order["A"].index(best["A"]), order["B"].index(best["B"])
     Ta, Tb = views.pose(best["A"]), views.pose(best["B"])
     T_local = Ta @ invert(true_kf["A"][ka]) @ true_kf["B"][kb] @ invert(Tb)
-    pb = np.asarray(ViewsCloud([vb[ids[1].index(best["B"])]]).at(0.05).points)
-    assert displacement_rms(res.T_a_b, T_local, pb) < 0.05
+    pb = np.asarray(ViewsCloud([views.load([best["B"]])[0].decoded()]).at(0.05).points)
+    assert displacement_rms(state_transform(st), T_local, pb) < 0.05
 
 
 def _scene_cloud_is_corrected(db, m: dict, full_b: np.ndarray) -> None:
