@@ -70,7 +70,8 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
             vocab,
             settings.cascade,
             RetrainPolicy(enabled=settings.auto_retrain),
-            background=settings.background_overlaps and not settings.defer_overlaps,
+            background=settings.background_overlaps,
+            defer_detection=settings.defer_overlaps,
         )
         where = app.state.db.stats()["db_path"]
         log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)

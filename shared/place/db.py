@@ -57,6 +57,7 @@ class PlaceDB(FleetAccess):
         params: CascadeParams = DEFAULT_CASCADE,
         retrain: RetrainPolicy | None = None,
         background: bool = True,
+        defer_detection: bool = False,
     ):
         if isinstance(store, str | Path):
             store = open_store(store, vocabulary.vocab_id)
@@ -80,20 +81,20 @@ class PlaceDB(FleetAccess):
         self.upkeep = CodebookUpkeep(self.retrain_policy, self.index, store, self.follower)
         self._load()
         self._detecting = threading.Lock()
-        self._started = False
-        if background:
+        self._started = not background  # without a background worker: `process_pending`
+        if background and self.follower is not None:
+            self.follower.start()  # the index follows the other replicas' commits
+        if not defer_detection:
             self.start_detection()
 
     def start_detection(self) -> None:
         """Detect the queued keyframes' overlaps in the background from now on (once; a
-        database opened with `background=False` holds them until this is called)."""
+        database opened with `defer_detection` holds them until this is called)."""
         with self._detecting:
             if self._started:
                 return
             self._started = True
             self.worker.start()
-            if self.follower is not None:
-                self.follower.start()
 
     def _load(self) -> None:
         t, pending = time.perf_counter(), []
