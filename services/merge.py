@@ -29,7 +29,12 @@ from fleetmap.fleet.correct import correct_fleet
 from fleetmap.fleet.placement import place_fleet
 from fleetmap.fleet.report import OVERLAP_KEYS, merge_parameters, merge_report
 from fleetmap.fleet.types import DEFAULT_MERGE, Fit, MergeParams
-from fleetmap.fleet.view_choice import local_views, overlaps_to_align, pair_views
+from fleetmap.fleet.view_choice import (
+    after_second_views,
+    local_views,
+    overlaps_to_align,
+    pair_views,
+)
 from fleetmap.mapcloud import MapCloud
 from fleetmap.services.embedded import check_reachable, start_services, warm_up
 from fleetmap.services.foxglove import write_fleet_mcap
@@ -235,11 +240,7 @@ def align_pairs(db, al, recs, kf_index, by_pair, max_views: int, quiet: bool, wo
             return None
         fit = aligned(al, views, a, b)
         if not fit.merged and (local := local_views(*chosen)):  # a map that bends: again
-            again = aligned(al, local, a, b)
-            if again.merged:
-                again.reason += " (views along the best overlap's path)"
-                return again
-            fit.reason += f"; views along the best overlap's path: {again.reason}"
+            fit = after_second_views(fit, aligned(al, local, a, b))
         return fit
 
     edges, fits, links = {}, [], {}

@@ -37,7 +37,7 @@ from fleetmap.fleet.state import read_graph, write_graph
 from fleetmap.fleet.types import Placement
 from fleetmap.fleet.view_choice import look_at
 from fleetmap.frame import Frame
-from fleetmap.geometry import invert
+from fleetmap.geometry import transform_error
 
 log = logging.getLogger(__name__)
 
@@ -322,6 +322,5 @@ def stored_corrections(db, version: int) -> tuple[dict[str, StoredCorrection], d
 
 def _near(T: np.ndarray, U: np.ndarray, metres: float = 0.005, radians: float = 0.005) -> bool:
     """Two relative poses close enough that ICP started from either ends the same."""
-    D = invert(T) @ U
-    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
-    return bool(np.linalg.norm(D[:3, 3]) < metres and angle < radians)
+    dt, dr = transform_error(U, T)
+    return dt < metres and dr < np.degrees(radians)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from fleetmap.fleet.types import DEFAULT_VIEWS
-from fleetmap.fleet.view_choice import look_at, spread
+from fleetmap.fleet.view_choice import look_at, path_lengths, spread
 from fleetmap.view import stored_view
 
 
@@ -43,8 +43,7 @@ class StoredViews:
         ids = self.db.keyframe_ids(robot)
         if kf_id not in ids:
             return set()
-        P = np.array([self.pose(k)[:3, 3] for k in ids])
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+        s = path_lengths(np.array([self.pose(k)[:3, 3] for k in ids]))
         at = s[ids.index(kf_id)]
         return {k for k, d in zip(ids, s, strict=True) if abs(d - at) <= length_m}
 

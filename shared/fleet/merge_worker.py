@@ -58,6 +58,7 @@ from fleetmap.fleet.types import (
     state_transform,
     transform_to_json,
 )
+from fleetmap.fleet.view_choice import after_second_views
 from fleetmap.place.nominate import nominated_overlaps
 
 log = logging.getLogger(__name__)
@@ -340,13 +341,9 @@ class LiveMap:
         st["views"] = [len(v) for v in ids]
         fit = self._fit(a, b, ids)
         if not fit.merged and not nominated and (local := self.views.local(a, b, ranked, k, ids)):
-            again = self._fit(a, b, local)  # a map that bends: its views near the best overlap
-            where = "views along the best overlap's path"
-            if again.merged:
-                fit, st["views"] = again, [len(v) for v in local]
-                fit.reason += f" ({where})"
-            else:
-                fit.reason += f"; {where}: {again.reason}"
+            fit = after_second_views(fit, self._fit(a, b, local))  # a map that bends
+            if fit.merged:
+                st["views"] = [len(v) for v in local]
         if fit.merged:
             log.info("live map: %s-%s merged (%d views each side)", a, b, st["views"][0])
             T_a_b = transform_to_json(fit.T_a_b)

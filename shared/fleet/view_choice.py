@@ -8,7 +8,7 @@ import numpy as np
 from fleetmap.correspondences import RGBDView
 from fleetmap.dataset import FrameRecord, Recording, load_depth, load_rgb
 from fleetmap.errors import BadRobotData
-from fleetmap.fleet.types import DEFAULT_VIEWS
+from fleetmap.fleet.types import DEFAULT_VIEWS, Fit
 
 
 def overlaps_to_align(db, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
@@ -96,11 +96,29 @@ def load_view(rec: Recording, i: int) -> RGBDView:
     )
 
 
+def path_lengths(positions: np.ndarray) -> np.ndarray:
+    """The distance travelled (metres) at each of a robot's positions (N, 3), in order."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+
+
 def path_window(rec: Recording, keyframes: list[int], i: int, length_m: float) -> list[int]:
     """The keyframes within `length_m` of frame i along the robot's path."""
-    P = np.array([_position(f) for f in rec.frames])
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    s = path_lengths(np.array([_position(f) for f in rec.frames]))
     return [k for k in keyframes if abs(s[k] - s[i]) <= length_m]
+
+
+SECOND_VIEWS = "views along the best overlap's path"
+
+
+def after_second_views(first: Fit, again: Fit) -> Fit:
+    """The fit of a pair refused from its first views and aligned again from the second
+    (`local_views`): the second where it merged, its reason saying so; else the first,
+    its reason carrying both."""
+    if again.merged:
+        again.reason += f" ({SECOND_VIEWS})"
+        return again
+    first.reason += f"; {SECOND_VIEWS}: {again.reason}"
+    return first
 
 
 def local_views(
