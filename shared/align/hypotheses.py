@@ -113,6 +113,8 @@ def _judge(h: Hypothesis, cloud_b, cloud_a, views_a, views_b, margin: float, fit
 
 def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, int]:
     """Truncated mean residual of the raw matches under T, and how many are within tol."""
+    if not len(R):
+        return tol, 0
     r = residuals(T, R.X, R.Y)
     return float(np.minimum(r, tol).mean()), int(np.count_nonzero(r < tol))
 

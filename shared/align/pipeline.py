@@ -13,6 +13,8 @@
    error of the rigid fit.
 6. Refused: a second look with affine-simulated SIFT on a few views of each robot
    (`fleetmap.align.second_look`), its matches judged with the first's by the same gate.
+7. Refused again: a third look on the maps' geometry alone, judged by free space and colour
+   (`fleetmap.align.geometric_look`).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import time
 
 import numpy as np
 
+from fleetmap.align.geometric_look import geometric_look
 from fleetmap.align.hypotheses import (
     choose,
     pair_hypotheses,
@@ -64,6 +67,12 @@ def align_views(
             res.method += "+asift"
         else:
             res.reason += f"; with affine-simulated features too: {again.reason}"
+    if not res.merged and p.use_icp and p.geometric_look:
+        third = geometric_look(pair, R, p, depth)
+        if third.merged:
+            res = third
+        else:
+            res.reason += f"; on the maps' geometry: {third.reason}"
     res.correspondences, res.scene_depth_m = len(R), depth
     res.seconds = time.perf_counter() - t0
     log.info(

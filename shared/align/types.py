@@ -42,6 +42,9 @@ class AlignParams:
     # refused pairs looked at again with ASIFT (second_look.py); its merges must be pinned
     # by the matches (pipeline._unpinned: without, SUN3D windows merged 11-15 cm off)
     second_look: bool = True
+    # refused by both: the maps' geometry proposes, free space and colour decide
+    # (geometric_look.py)
+    geometric_look: bool = True
 
     def spread_needed(self, depth_m: float) -> float:
         """The inliers' spread (metres) the gate needs for views whose median depth is

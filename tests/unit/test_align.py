@@ -28,9 +28,16 @@ def test_correspondences_land_on_the_same_world_points(tum_two_robots):
 
 
 def test_gate_refuses_too_few_correspondences(tum_two_robots):
-    pairs, _ = tum_two_robots
-    res = align_views(pairs, AlignParams(min_inliers=10_000))
+    """Matches the gate cannot accept: both image looks refuse. The third look aligns the
+    real pair on its depth alone (FPFH basins) and merges it, at the truth, because its
+    free space and its grey levels agree."""
+    pairs, T_a_b = tum_two_robots
+    res = align_views(pairs, AlignParams(min_inliers=10_000, geometric_look=False))
     assert not res.merged and "correspondences" in res.reason
+    res = align_views(pairs, AlignParams(min_inliers=10_000))
+    assert res.merged and res.method.startswith("fpfh"), res.reason
+    dt, dr = transform_error(res.T_a_b, T_a_b)
+    assert dt < 0.05 and dr < 2.0, (dt, dr, res.reason)
 
 
 def test_bad_views_are_named():
