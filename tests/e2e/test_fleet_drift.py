@@ -210,7 +210,7 @@ def test_a_map_that_holds_one_place_twice_merges_from_views_along_its_path(holol
     chosen = (ov, recs["A"], recs["B"], *kfi, 12)
     # the views of both ends: refused (the first look here; the merge's second look
     # refused them too, 583 matches agreeing with an alignment 0.28 m away)
-    first_look = dataclasses.replace(DEFAULT_ALIGN, second_look=False)
+    first_look = dataclasses.replace(DEFAULT_ALIGN, second_look=False, geometric_look=False)
     assert not align_views(pair_views(*chosen), first_look).merged
     res = align_views(local_views(*chosen))
     assert res.merged, res.reason
@@ -318,7 +318,9 @@ def _live_views_along_the_path(db, true_kf: dict) -> None:
     sent = []
 
     def align(pairs: list) -> dict:  # the aligner in this process; the first call refused
-        impossible = dataclasses.replace(DEFAULT_ALIGN, min_inliers=10**6, second_look=False)
+        impossible = dataclasses.replace(
+            DEFAULT_ALIGN, min_inliers=10**6, second_look=False, geometric_look=False
+        )
         sent.append(sorted({b.stamp for _, b in pairs}))
         p = impossible if len(sent) == 1 else DEFAULT_ALIGN
         return align_views([(a.decoded(), b.decoded()) for a, b in pairs], p).to_dict()
