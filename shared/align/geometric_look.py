@@ -50,6 +50,9 @@ class GeometricLook:
 
 
 DEFAULT_LOOK = GeometricLook()
+#: fewer points than this in either map at the FPFH voxel: no look (RANSAC's samples and
+#: the correlation need a few hundred)
+MIN_POINTS = 200
 
 
 @dataclass
@@ -153,6 +156,9 @@ def geometric_look(pair, R, p: AlignParams, depth: float, look=DEFAULT_LOOK) -> 
     winner's refinements where they can tell, as in `hypotheses.choose`)."""
     voxel = float(np.clip(look.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
     (views_a, views_b), clouds = pair.views, pair.clouds()
+    few = min(len(c.at(voxel).points) for c in clouds)
+    if few < MIN_POINTS:
+        return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
     seen = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
     judged = []
     for T, n in basins(clouds, voxel, look):
