@@ -70,11 +70,11 @@ COST_S = {
     "sun3d_merge": 55,
     APART[1]: 39,
     f"{_PARTS}[part_a1-part_b1-False]": 35,
-    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 33,
+    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 70,
     "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 32,
     APART[2]: 25,
     "tests/e2e/test_demo_fleet.py": 22,
-    "tests/e2e/test_recall.py::test_room_walked_the_other_way_is_merged_on_a_second_look": 19,
+    "tests/e2e/test_recall.py::test_room_walked_the_other_way_is_merged_on_a_second_look": 35,
     "tests/e2e/test_recall.py::"
     "test_room_seen_from_elsewhere_is_merged_on_its_geometry_and_colour": 30,
     "tests/e2e/test_sun3d_alignment.py::test_different_places_are_not_merged": 17,

@@ -2,8 +2,9 @@
 quality gate that refuses rather than guesses: `types` (parameters, results; no torch or
 Open3D), `methods` (the registry: `METHODS[name](pairs, params)`), `hypotheses` (RANSAC,
 ICP, the free-space test), `validation` (cross-validation, spread), `pipeline` (the gated
-default), `second_look` (ASIFT where the first look was refused), `baselines` (what the
-default is compared with), `outputs` (the merged cloud)."""
+default), `second_look` (ASIFT where the first look was refused), `geometric_look` (FPFH
+basins judged by free space and colour where both image looks were refused), `baselines`
+(what the default is compared with), `outputs` (the merged cloud)."""
 
 from fleetmap.align.baselines import fpfh_ransac_icp, select_model
 from fleetmap.align.hypotheses import surface_rmse
