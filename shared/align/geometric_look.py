@@ -16,7 +16,8 @@ the same grey levels up to gain and offset (Pearson correlation; right alignment
 recall bench 0.56-0.92, wrong ones with the free space clean -0.38 or less), while the free
 space, judged tightly, refuses slides (wrong ones with a correlation of 0.5 or more: firm
 consistency 0.82 or less). A merge needs both, both ways, on the gate's overlap, and no
-other basin that passes. Every length follows the scene's median depth.
+other basin that passes as far away as the gate's rivals (`rival_m`, `rival_deg`). Every
+length follows the scene's median depth.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 
 from fleetmap.align.hypotheses import choose, probe_points
 from fleetmap.align.types import AlignParams, AlignResult, Hypothesis
-from fleetmap.geometry import apply, displacement_rms, invert
+from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,11 @@ class Judged:
     correlation: float
     meeting: int
     seeds: int = 1
+
+    @property
+    def score(self) -> float:
+        """The smaller way's firm consistency plus the correlation: which basin passes best."""
+        return min(self.firm) + self.correlation
 
     def passes(self, look: GeometricLook, p: AlignParams) -> bool:
         return (
@@ -165,14 +171,19 @@ def geometric_look(pair, R, p: AlignParams, depth: float, look=DEFAULT_LOOK) -> 
         j = judge(T, clouds, seen, voxel)
         j.seeds = n
         judged.append(j)
-    passing = [j for j in judged if j.passes(look, p)]
+    passing = sorted((j for j in judged if j.passes(look, p)), key=lambda j: -j.score)
     log.info("geometric look: %d basins, %d pass", len(judged), len(passing))
-    if len(passing) > 1:
-        return AlignResult(False, f"{len(passing)} alignments far apart pass (ambiguous)")
     if not passing:
-        best = max(judged, key=lambda j: min(j.firm) + j.correlation)
+        best = max(judged, key=lambda j: j.score)
         return AlignResult(False, f"no alignment passes: at best {best.why_not(look, p)}")
-    win = passing[0]
+    win, probe = passing[0], probe_points(clouds[1].at(voxel))
+    for j in passing[1:]:  # basins a voxel apart may refine into one place: rivals are far
+        dt = displacement_rms(j.T_a_b, win.T_a_b, probe)
+        dr = transform_error(j.T_a_b, win.T_a_b)[1]
+        if dt > p.rival_m or dr > p.rival_deg:
+            return AlignResult(
+                False, f"ambiguous: another alignment {dt:.2f} m / {dr:.0f} deg away passes too"
+            )
     h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, views_a, views_b, clouds, p, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin
