@@ -28,29 +28,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.align.hypotheses import choose, probe_points
-from fleetmap.align.types import AlignParams, AlignResult, Hypothesis
+from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
 from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class GeometricLook:
-    # FPFH voxel as a share of the views' median depth (FPFH radius five voxels: a quarter
-    # of the viewing distance, the same share of what a camera frames at any scale)
-    voxel_rel: float = 0.05
-    # RANSAC seeds (every other one with mutual feature matches); on the recall bench's
-    # HoloLens and SUN3D windows the right basin came from 2-14 of 20
-    seeds: int = 16
-    iterations: int = 100_000
-    # firm free-space consistency each way, judged at half a voxel (2.5% of the depth)
-    min_consistency: float = 0.9
-    # grey levels of the points that meet (within half a voxel), Pearson
-    min_correlation: float = 0.5
-
-
-DEFAULT_LOOK = GeometricLook()
 #: fewer points than this in either map at the FPFH voxel: no look (RANSAC's samples and
 #: the correlation need a few hundred)
 MIN_POINTS = 200
@@ -156,10 +140,12 @@ def judge(T: np.ndarray, clouds, seen, voxel: float) -> Judged:
     )
 
 
-def geometric_look(pair, R, p: AlignParams, depth: float, look=DEFAULT_LOOK) -> AlignResult:
-    """Align the pair's views on their fused depth alone (`basins`), judged by `judge`.
-    `pair`: the pipeline's `_PairClouds`; R: the raw matches (they choose between the
-    winner's refinements where they can tell, as in `hypotheses.choose`)."""
+def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
+    """Align the pair's views on their fused depth alone (`basins`), judged by `judge`, with
+    `p.geometric`'s settings. `pair`: the pipeline's `_PairClouds`; R: the raw matches
+    (they choose between the winner's refinements where they can tell, as in
+    `hypotheses.choose`)."""
+    look = p.geometric
     voxel = float(np.clip(look.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
     (views_a, views_b), clouds = pair.views, pair.clouds()
     few = min(len(c.at(voxel).points) for c in clouds)

@@ -14,6 +14,29 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
+class GeometricLook:
+    """The third look's settings (`fleetmap.align.geometric_look`)."""
+
+    # FPFH voxel as a share of the views' median depth (FPFH radius five voxels: a quarter
+    # of the viewing distance, the same share of what a camera frames at any scale)
+    voxel_rel: float = 0.05
+    # RANSAC seeds (every other one with mutual feature matches); on the recall bench's
+    # HoloLens and SUN3D windows the right basin came from 2-14 of 20
+    seeds: int = 16
+    iterations: int = 100_000
+    # firm free-space consistency each way, judged at half a voxel (2.5% of the depth)
+    min_consistency: float = 0.9
+    # grey levels of the points that meet (within half a voxel), Pearson
+    min_correlation: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.seeds < 1 or self.iterations < 1 or not self.voxel_rel > 0:
+            raise ValueError("the third look needs seeds >= 1, iterations >= 1, voxel_rel > 0")
+        if not (0 <= self.min_consistency <= 1 and -1 <= self.min_correlation <= 1):
+            raise ValueError("min_consistency must lie in [0, 1], min_correlation in [-1, 1]")
+
+
+@dataclass(frozen=True)
 class AlignParams:
     """Gate thresholds in metres; see the module docstring for the stages."""
 
@@ -45,6 +68,7 @@ class AlignParams:
     # refused by both: the maps' geometry proposes, free space and colour decide
     # (geometric_look.py)
     geometric_look: bool = True
+    geometric: GeometricLook = GeometricLook()
 
     def spread_needed(self, depth_m: float) -> float:
         """The inliers' spread (metres) the gate needs for views whose median depth is

@@ -52,6 +52,7 @@ def tuned(tmp_path, monkeypatch):
 def aligner(monkeypatch):
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__MIN_INLIERS", "21")
     monkeypatch.setenv("FLEETMAP_ALIGNER_MAX_PAIRS", "100")
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC__SEEDS", "8")
     st = AlignerSettings(operator_token=OP, robot_tokens={"A": TOK_A})
     with TestClient(create_aligner(st, announce=False)) as c:
         yield c, st
@@ -106,11 +107,21 @@ def test_aligner_config_answers_the_settings_in_force(aligner):
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["align"]["min_inliers"] == 21 and body["max_pairs"] == 100
+    assert body["align"]["geometric"]["seeds"] == 8  # the third look's, nested in its turn
     assert body["align"] == dataclasses.asdict(st.align)
     assert not {"operator_token", "robot_tokens"} & set(body)
     assert not [s for s in SECRETS if s in r.text]
     assert client.get("/config").status_code == 401
     assert client.get("/config", headers=_auth("nope")).status_code == 401
+
+
+def test_aligner_refuses_a_third_look_it_cannot_run(monkeypatch):
+    """A setting the third look could not run with is refused at start-up, named."""
+    from pydantic import ValidationError
+
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC__SEEDS", "0")
+    with pytest.raises(ValidationError, match="seeds >= 1"):
+        AlignerSettings()
 
 
 @pytest.mark.parametrize("service", ["place-db", "aligner"])

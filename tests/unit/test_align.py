@@ -127,7 +127,7 @@ def test_third_look_tells_the_truth_from_a_slide_on_real_views(tum_two_robots):
     correlate 0.50-0.80, the desk's colours varying slowly)."""
     from scipy.spatial.transform import Rotation
 
-    from fleetmap.align.geometric_look import DEFAULT_LOOK, judge
+    from fleetmap.align.geometric_look import judge
     from fleetmap.align.pipeline import _PairClouds, scene_depth
     from fleetmap.align.types import DEFAULT_ALIGN
     from fleetmap.geometry import invert
@@ -136,9 +136,10 @@ def test_third_look_tells_the_truth_from_a_slide_on_real_views(tum_two_robots):
     pairs, T_a_b = tum_two_robots
     pair = _PairClouds(pairs)
     seen = tuple([SeenDepth(v) for v in views] for views in pair.views)
-    voxel = DEFAULT_LOOK.voxel_rel * scene_depth(pairs)
+    look = DEFAULT_ALIGN.geometric
+    voxel = look.voxel_rel * scene_depth(pairs)
     right = judge(T_a_b, pair.clouds(), seen, voxel)
-    assert right.passes(DEFAULT_LOOK, DEFAULT_ALIGN), right
+    assert right.passes(look, DEFAULT_ALIGN), right
     moves = []
     for axis in range(3):
         moves.append(np.eye(4))
@@ -149,4 +150,4 @@ def test_third_look_tells_the_truth_from_a_slide_on_real_views(tum_two_robots):
     moves.append(cam @ turn @ invert(cam))
     for move in moves:
         wrong = judge(move @ T_a_b, pair.clouds(), seen, voxel)
-        assert not wrong.passes(DEFAULT_LOOK, DEFAULT_ALIGN), (move, wrong)
+        assert not wrong.passes(look, DEFAULT_ALIGN), (move, wrong)
