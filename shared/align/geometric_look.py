@@ -6,7 +6,8 @@ their views (HoloLens walk, 27% of the maps shared: 6 of 1,110 raw matches agree
 truth, ASIFT included). The fused depth of the views sent still holds the shared surfaces.
 FPFH features on it and feature RANSAC (Open3D, the map_merge_3d recipe's registration)
 propose alignments; a few seeds of it, each refined by point-to-plane ICP, land in a few
-basins, the right one among them often enough (docs/ALIGNER.md, "The third look").
+basins, the right one among them often enough (docs/ALIGNER.md, "A third look: the maps'
+geometry, judged by free space and colour").
 
 Geometry alone does not decide: on rooms of floor and walls a wrong basin may put no point
 in space the other robot saw empty (cross-recording pairs up to 1.00 both ways), and a
