@@ -148,11 +148,11 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     `hypotheses.choose`)."""
     look = p.geometric
     voxel = float(np.clip(look.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
-    (views_a, views_b), clouds = pair.views, pair.clouds()
+    clouds = pair.clouds()
     few = min(len(c.at(voxel).points) for c in clouds)
     if few < MIN_POINTS:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
-    seen = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
+    seen = tuple([SeenDepth(v) for v in views] for views in pair.views)  # kept for `choose` too
     judged = []
     for T, n in basins(clouds, voxel, look):
         j = judge(T, clouds, seen, voxel)
@@ -171,7 +171,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
             return AlignResult(
                 False, f"ambiguous: another alignment {dt:.2f} m / {dr:.0f} deg away passes too"
             )
-    h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, views_a, views_b, clouds, p, pair.memo)[0]
+    h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin
         h.T_a_b, refined = win.T_a_b, win

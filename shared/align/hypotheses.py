@@ -137,11 +137,12 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
     alone chose the worse refinement 6 times (up to 7.0 against 2.7 cm), this rule once
     (a tie, 3.3 against 0.4 cm). See docs/ALIGNER.md.
 
-    `memo` (a dict, or None): ICPs, judgements and refinements by the transform they
-    started from, for a second call on the same clouds and views (the second look at a
-    pair meets the first look's hypotheses again)."""
+    `views_a`, `views_b`: RGB-D views or their `SeenDepth` (the third look's, whose
+    nearest-reading images are then made once). `memo` (a dict, or None): ICPs, judgements
+    and refinements by the transform they started from, for a second call on the same
+    clouds and views (the second look at a pair meets the first look's hypotheses again)."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
-    views_a, views_b = [SeenDepth(v) for v in views_a], [SeenDepth(v) for v in views_b]
+    views_a, views_b = _seen(views_a), _seen(views_b)
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
     probe = probe_points(cb0)
     hyps = _distinct(sorted(hyps, key=lambda h: -h.support), probe, p.dedupe_m)
@@ -178,6 +179,11 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
             polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
             return polished, top[1:]
     return best, top[1:]
+
+
+def _seen(views) -> list[SeenDepth]:
+    """Views as `SeenDepth`, those already so kept (with their nearest-reading images)."""
+    return [v if isinstance(v, SeenDepth) else SeenDepth(v) for v in views]
 
 
 def refused_whatever_refined(best: Hypothesis, p: AlignParams) -> bool:
