@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,9 @@ from fleetmap.lazy import LazyModule
 o3d = LazyModule("open3d")
 
 REG = LazyModule("open3d", "pipelines.registration")
+#: Open3D's random generator is one per process: a seed and the RANSAC drawing from it run
+#: under this lock, so two requests' RANSACs at once give what each gives alone
+SEEDED = threading.Lock()
 
 ROBOT_COLOURS = np.array(
     [

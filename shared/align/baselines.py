@@ -14,7 +14,7 @@ from fleetmap.align.validation import kfold_residuals
 from fleetmap.correspondences import pooled_correspondences
 from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply
-from fleetmap.mapcloud import REG, icp, views_cloud
+from fleetmap.mapcloud import REG, SEEDED, icp, views_cloud
 from fleetmap.registration import MODELS
 
 
@@ -83,25 +83,26 @@ def fpfh_ransac_icp(views_a, views_b, voxel: float = 0.05, seed: int = 0):
     Returns (T_a_b, overlap fitness)."""
     import open3d as o3d
 
-    o3d.utility.random.seed(seed)
     ca, cb = views_cloud(views_a, voxel=voxel), views_cloud(views_b, voxel=voxel)
     param = o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
     fa, fb = REG.compute_fpfh_feature(ca, param), REG.compute_fpfh_feature(cb, param)
-    r = REG.registration_ransac_based_on_feature_matching(
-        cb,
-        ca,
-        fb,
-        fa,
-        True,
-        1.5 * voxel,
-        REG.TransformationEstimationPointToPoint(False),
-        3,
-        [
-            REG.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-            REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
-        ],
-        REG.RANSACConvergenceCriteria(100_000, 0.999),
-    )
+    with SEEDED:
+        o3d.utility.random.seed(seed)
+        r = REG.registration_ransac_based_on_feature_matching(
+            cb,
+            ca,
+            fb,
+            fa,
+            True,
+            1.5 * voxel,
+            REG.TransformationEstimationPointToPoint(False),
+            3,
+            [
+                REG.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+            ],
+            REG.RANSACConvergenceCriteria(100_000, 0.999),
+        )
     T, fit, _ = icp(cb, ca, r.transformation, distances=(2 * voxel, voxel, 0.6 * voxel))
     return T, fit
 

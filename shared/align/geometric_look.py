@@ -31,7 +31,7 @@ import numpy as np
 from fleetmap.align.hypotheses import choose, probe_points
 from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
 from fleetmap.geometry import apply, displacement_rms, invert, transform_error
-from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
+from fleetmap.mapcloud import REG, SEEDED, SeenDepth, free_space_check, icp, overlap_fitness
 
 log = logging.getLogger(__name__)
 
@@ -104,14 +104,15 @@ def basins(clouds, voxel: float, look: GeometricLook) -> list[tuple[np.ndarray, 
     probe = probe_points(cb)
     found: list[list] = []
     for seed in range(look.seeds):
-        o3d.utility.random.seed(seed)
-        r = REG.registration_ransac_based_on_feature_matching(
-            cb, ca, fb, fa, seed % 2 == 1, 1.5 * voxel,
-            REG.TransformationEstimationPointToPoint(False), 3,
-            [REG.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-             REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-            REG.RANSACConvergenceCriteria(look.iterations, 0.999),
-        )  # fmt: skip
+        with SEEDED:
+            o3d.utility.random.seed(seed)
+            r = REG.registration_ransac_based_on_feature_matching(
+                cb, ca, fb, fa, seed % 2 == 1, 1.5 * voxel,
+                REG.TransformationEstimationPointToPoint(False), 3,
+                [REG.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                 REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
+                REG.RANSACConvergenceCriteria(look.iterations, 0.999),
+            )  # fmt: skip
         T = icp(cb, ca, r.transformation, (2 * voxel, voxel), 30)[0]
         for b in found:
             if displacement_rms(b[0], T, probe) < voxel:

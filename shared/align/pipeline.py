@@ -60,7 +60,7 @@ def align_views(
     pair = _PairClouds(pairs)  # both looks see the same views: their clouds made once
     res = _align(C, R, pair, p, depth)
     if not res.merged and p.second_look and len(R) >= p.min_inliers:
-        R = Correspondences.concat([R, affine_matches(pairs, len(pairs))])
+        R = Correspondences.concat([R, affine_matches(pairs, len(pairs), p.second)])
         again = _align(C, R, pair, p, depth, pinned=True)
         if again.merged:
             res = again

@@ -16,26 +16,13 @@ import hashlib
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.align.types import unique_views
+from fleetmap.align.types import SecondLook, unique_views
 from fleetmap.correspondences import Correspondences, lift
 from fleetmap.features import affine_features
 from fleetmap.matching import match_descriptors
-
-
-@dataclass(frozen=True)
-class SecondLook:
-    views: int = 6  # per robot, spread over the first look's views
-    max_tilt: int = 4
-    # SIFT features per simulated tilt. On the kept recall pairs (docs/ALIGNER.md): 120
-    # lost three of the four HoloLens second-look merges; 320 kept them and merged one
-    # more (31% shared, 1.1 cm) at 1.3x the cost of 200 (24 against 18.5 s for 12 views
-    # on a loaded machine); SUN3D's unpinned merges and the cross pairs stayed refused
-    per_view: int = 320
-    ratio: float = 0.85
 
 
 def spread_views(views: list, n: int) -> list:
@@ -78,7 +65,7 @@ def image_key(image: np.ndarray) -> bytes:
     return h.digest()
 
 
-def affine_matches(pairs, first_index: int, s: SecondLook = SecondLook()) -> Correspondences:
+def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
     """Raw (mutual, ratio-test) ASIFT matches of every pair of `s.views` views of each
     robot, lifted to 3D in each robot's map frame; pair indices from `first_index` on.
     Features and matches of views seen in recent requests are reused (`_Recent`)."""

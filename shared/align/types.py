@@ -14,6 +14,26 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
+class SecondLook:
+    """The second look's settings (`fleetmap.align.second_look`)."""
+
+    views: int = 6  # per robot, spread over the first look's views
+    max_tilt: int = 4
+    # SIFT features per simulated tilt. On the kept recall pairs (docs/ALIGNER.md): 120
+    # lost three of the four HoloLens second-look merges; 320 kept them and merged one
+    # more (31% shared, 1.1 cm) at 1.3x the cost of 200 (24 against 18.5 s for 12 views
+    # on a loaded machine); SUN3D's unpinned merges and the cross pairs stayed refused
+    per_view: int = 320
+    ratio: float = 0.85
+
+    def __post_init__(self) -> None:
+        if self.views < 1 or self.max_tilt < 1 or self.per_view < 1:
+            raise ValueError("the second look needs views >= 1, max_tilt >= 1, per_view >= 1")
+        if not 0 < self.ratio <= 1:
+            raise ValueError("the second look's ratio must lie in (0, 1]")
+
+
+@dataclass(frozen=True)
 class GeometricLook:
     """The third look's settings (`fleetmap.align.geometric_look`)."""
 
@@ -65,6 +85,7 @@ class AlignParams:
     # refused pairs looked at again with ASIFT (second_look.py); its merges must be pinned
     # by the matches (pipeline._unpinned: without, SUN3D windows merged 11-15 cm off)
     second_look: bool = True
+    second: SecondLook = SecondLook()
     # refused by both: the maps' geometry proposes, free space and colour decide
     # (geometric_look.py)
     geometric_look: bool = True

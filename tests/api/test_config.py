@@ -53,6 +53,7 @@ def aligner(monkeypatch):
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__MIN_INLIERS", "21")
     monkeypatch.setenv("FLEETMAP_ALIGNER_MAX_PAIRS", "100")
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC__SEEDS", "8")
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND__PER_VIEW", "200")
     st = AlignerSettings(operator_token=OP, robot_tokens={"A": TOK_A})
     with TestClient(create_aligner(st, announce=False)) as c:
         yield c, st
@@ -108,6 +109,7 @@ def test_aligner_config_answers_the_settings_in_force(aligner):
     body = r.json()
     assert body["align"]["min_inliers"] == 21 and body["max_pairs"] == 100
     assert body["align"]["geometric"]["seeds"] == 8  # the third look's, nested in its turn
+    assert body["align"]["second"]["per_view"] == 200 and st.align.second.per_view == 200
     assert body["align"] == dataclasses.asdict(st.align)
     assert not {"operator_token", "robot_tokens"} & set(body)
     assert not [s for s in SECRETS if s in r.text]
@@ -115,12 +117,22 @@ def test_aligner_config_answers_the_settings_in_force(aligner):
     assert client.get("/config", headers=_auth("nope")).status_code == 401
 
 
-def test_aligner_refuses_a_third_look_it_cannot_run(monkeypatch):
-    """A setting the third look could not run with is refused at start-up, named."""
+@pytest.mark.parametrize(
+    "name, value, named",
+    [
+        ("GEOMETRIC__SEEDS", "0", "seeds >= 1"),
+        ("SECOND__PER_VIEW", "0", "per_view >= 1"),
+        ("SECOND__RATIO", "1.5", "ratio must lie in"),
+        ("SECOND__VIEWS", "six", "views"),
+    ],
+)
+def test_aligner_refuses_a_look_it_cannot_run(monkeypatch, name, value, named):
+    """A setting the second or third look could not run with is refused at start-up,
+    named."""
     from pydantic import ValidationError
 
-    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC__SEEDS", "0")
-    with pytest.raises(ValidationError, match="seeds >= 1"):
+    monkeypatch.setenv(f"FLEETMAP_ALIGNER_ALIGN__{name}", value)
+    with pytest.raises(ValidationError, match=named):
         AlignerSettings()
 
 

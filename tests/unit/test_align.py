@@ -151,3 +151,25 @@ def test_third_look_tells_the_truth_from_a_slide_on_real_views(tum_two_robots):
     for move in moves:
         wrong = judge(move @ T_a_b, pair.clouds(), seen, voxel)
         assert not wrong.passes(look, DEFAULT_ALIGN), (move, wrong)
+
+
+def test_third_looks_at_once_find_what_each_finds_alone(tum_two_robots):
+    """Open3D's random generator is one per process: two requests' third looks at once
+    (the aligner serves requests on threads) give the same basins as one alone, because
+    each seed and the RANSAC drawing from it run under one lock."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fleetmap.align.geometric_look import basins
+    from fleetmap.align.pipeline import _PairClouds, scene_depth
+    from fleetmap.align.types import GeometricLook
+
+    pairs, _ = tum_two_robots
+    look = GeometricLook(seeds=6, iterations=20_000)
+    voxel = look.voxel_rel * scene_depth(pairs)
+    alone = basins(_PairClouds(pairs).clouds(), voxel, look)
+    with ThreadPoolExecutor(3) as ex:
+        at_once = list(ex.map(lambda _: basins(_PairClouds(pairs).clouds(), voxel, look), "abc"))
+    for found in at_once:
+        assert [n for _, n in found] == [n for _, n in alone]
+        for (T, _), (T0, _) in zip(found, alone, strict=True):
+            assert np.allclose(T, T0, atol=1e-9)
