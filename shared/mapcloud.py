@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetmap.camera import depth_to_points
+from fleetmap.camera import backproject_pixels, depth_to_points
 from fleetmap.geometry import apply, invert
 from fleetmap.lazy import LazyModule
 
@@ -106,18 +106,36 @@ class ViewsCloud:
     or four scales."""
 
     def __init__(self, views: Iterable, stride: int = 4, max_depth: float = 6.0):
+        self.views, self.stride, self.max_depth = list(views), stride, max_depth
         parts = [
-            view_points(v.rgb, v.depth, v.intrinsics, v.T_map_cam, stride, max_depth) for v in views
+            view_points(v.rgb, v.depth, v.intrinsics, v.T_map_cam, stride, max_depth)
+            for v in self.views
         ]
         self.raw = MapCloud(
             np.concatenate([p for p, _ in parts]), np.concatenate([c for _, c in parts])
         )
         self._at: dict[float, o3d.geometry.PointCloud] = {}
+        self._off_edges: dict[float, np.ndarray] = {}
 
     def at(self, voxel: float) -> o3d.geometry.PointCloud:
         if voxel not in self._at:
             self._at[voxel] = self.raw.o3d(voxel)
         return self._at[voxel]
+
+    def off_edges(self, voxel: float) -> np.ndarray:
+        """The points (N, 3) at `voxel` of the pixels off depth edges only: a pixel whose
+        3x3 neighbourhood has a hole or spans over 5% of its depth (`backproject_pixels`'
+        rule) may mix the depths of both sides of the edge (mixed, "flying" pixels: time of
+        flight and structured light alike) and float in space its own camera saw empty."""
+        if voxel not in self._off_edges:
+            parts = []
+            for v in self.views:
+                p, uv = depth_to_points(v.depth, v.intrinsics, self.stride, self.max_depth)
+                ok = backproject_pixels(uv, v.depth, v.intrinsics, self.max_depth)[1]
+                parts.append(apply(v.T_map_cam, p[ok]))
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(parts)))
+            self._off_edges[voxel] = np.asarray(cloud.voxel_down_sample(voxel).points)
+        return self._off_edges[voxel]
 
 
 def icp(

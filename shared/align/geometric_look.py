@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fleetmap.align.hypotheses import choose, probe_points
+from fleetmap.align.manhattan import manhattan_starts
 from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
 from fleetmap.geometry import apply, displacement_rms, invert, transform_error
 from fleetmap.mapcloud import REG, SEEDED, SeenDepth, free_space_check, icp, overlap_fitness
@@ -91,10 +92,14 @@ def grey_correlation(cloud_a, cloud_b, T: np.ndarray, distance: float) -> tuple[
     return float(np.corrcoef(ga, gb)[0, 1]), int(met.sum())
 
 
-def basins(clouds, voxel: float, look: GeometricLook) -> list[tuple[np.ndarray, int]]:
-    """FPFH + feature RANSAC seeds on the clouds at `voxel`, each refined by point-to-plane
-    ICP there; basins closer than a voxel (RMS over B's points) merged, each refined once
-    more at half a voxel. Returns [(T_a_b, seeds that landed there)], most seeds first."""
+def basins(
+    clouds, voxel: float, look: GeometricLook, min_fitness: float = 0.0
+) -> list[tuple[np.ndarray, int]]:
+    """FPFH + feature RANSAC seeds on the clouds at `voxel`, and `look.plane_starts` from
+    the rotations between the maps' dominant planes (`manhattan.manhattan_starts`, kept
+    where their ICP overlaps at least `min_fitness` of B), each refined by point-to-plane ICP
+    there; basins closer than a voxel (RMS over B's points) merged, each refined once more
+    at half a voxel. Returns [(T_a_b, starts that landed there)], most starts first."""
     import open3d as o3d
 
     ca, cb = clouds[0].at(voxel), clouds[1].at(voxel)
@@ -113,23 +118,34 @@ def basins(clouds, voxel: float, look: GeometricLook) -> list[tuple[np.ndarray, 
                  REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
                 REG.RANSACConvergenceCriteria(look.iterations, 0.999),
             )  # fmt: skip
-        T = icp(cb, ca, r.transformation, (2 * voxel, voxel), 30)[0]
-        for b in found:
-            if displacement_rms(b[0], T, probe) < voxel:
-                b[1] += 1
-                break
-        else:
-            found.append([T, 1])
+        _land(found, icp(cb, ca, r.transformation, (2 * voxel, voxel), 30)[0], probe, voxel)
+    for T0 in manhattan_starts(ca, cb, voxel, look.plane_starts):
+        T, fit, _ = icp(cb, ca, T0, (2 * voxel, voxel), 30)
+        if fit >= min_fitness:
+            _land(found, T, probe, voxel)
     found.sort(key=lambda b: -b[1])
     return [(icp(fine_b, fine_a, T, (voxel / 2,), 30)[0], n) for T, n in found]
 
 
-def judge(T: np.ndarray, clouds, seen, voxel: float) -> Judged:
-    """Overlap, firm free-space consistency (at half a voxel) and grey-level correlation
+def _land(found: list[list], T: np.ndarray, probe: np.ndarray, voxel: float) -> None:
+    """Count T in the basin (`found`: [T, starts]) within a voxel of it, or open one."""
+    for b in found:
+        if displacement_rms(b[0], T, probe) < voxel:
+            b[1] += 1
+            return
+    found.append([T, 1])
+
+
+def judge(T: np.ndarray, clouds, seen, voxel: float, off_edges: bool = True) -> Judged:
+    """Overlap, firm free-space consistency (at half a voxel; of the points off depth
+    edges, `ViewsCloud.off_edges`, unless `off_edges` is False) and grey-level correlation
     of an alignment, both ways. `seen`: each robot's views as `SeenDepth`."""
     half = voxel / 2
     ca, cb = clouds[0].at(half), clouds[1].at(half)
-    pa, pb = (np.asarray(c.at(2 * voxel).points) for c in clouds)
+    if off_edges:
+        pa, pb = (c.off_edges(2 * voxel) for c in clouds)
+    else:
+        pa, pb = (np.asarray(c.at(2 * voxel).points) for c in clouds)
     s_b, _, f_b = free_space_check(apply(T, pb), seen[0], margin=half, rel_margin=0.0)
     s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], margin=half, rel_margin=0.0)
     r, n = grey_correlation(ca, cb, T, half)
@@ -155,7 +171,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
     seen = tuple([SeenDepth(v) for v in views] for views in pair.views)  # kept for `choose` too
     judged = []
-    for T, n in basins(clouds, voxel, look):
+    for T, n in basins(clouds, voxel, look, p.min_overlap):
         j = judge(T, clouds, seen, voxel)
         j.seeds = n
         judged.append(j)

@@ -44,14 +44,20 @@ class GeometricLook:
     # HoloLens and SUN3D windows the right basin came from 2-14 of 20
     seeds: int = 16
     iterations: int = 100_000
+    # starts from the maps' dominant planes (manhattan.py): of the 24 rotations between
+    # the two maps' plane frames and their best translations, those where the most
+    # occupied cells meet (0: none)
+    plane_starts: int = 16
     # firm free-space consistency each way, judged at half a voxel (2.5% of the depth)
     min_consistency: float = 0.9
     # grey levels of the points that meet (within half a voxel), Pearson
     min_correlation: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.seeds < 1 or self.iterations < 1 or not self.voxel_rel > 0:
-            raise ValueError("the third look needs seeds >= 1, iterations >= 1, voxel_rel > 0")
+        if self.seeds < 1 or self.iterations < 1 or not self.voxel_rel > 0 or self.plane_starts < 0:
+            raise ValueError(
+                "the third look needs seeds >= 1, iterations >= 1, voxel_rel > 0, plane_starts >= 0"
+            )
         if not (0 <= self.min_consistency <= 1 and -1 <= self.min_correlation <= 1):
             raise ValueError("min_consistency must lie in [0, 1], min_correlation in [-1, 1]")
 
