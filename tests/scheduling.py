@@ -77,6 +77,7 @@ COST_S = {
     "tests/e2e/test_recall.py::test_room_walked_the_other_way_is_merged_on_a_second_look": 35,
     "tests/e2e/test_recall.py::"
     "test_room_seen_from_elsewhere_is_merged_on_its_geometry_and_colour": 30,
+    "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 30,
     "tests/e2e/test_sun3d_alignment.py::test_different_places_are_not_merged": 17,
     "sun3d_alignment": 16,
     "tests/process/test_fuzz_api.py::test_no_5xx_and_no_hang[place-db]": 14,

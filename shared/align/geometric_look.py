@@ -5,9 +5,11 @@ Where two robots saw the same surfaces from directions far apart, no image match
 their views (HoloLens walk, 27% of the maps shared: 6 of 1,110 raw matches agree with the
 truth, ASIFT included). The fused depth of the views sent still holds the shared surfaces.
 FPFH features on it and feature RANSAC (Open3D, the map_merge_3d recipe's registration)
-propose alignments; a few seeds of it, each refined by point-to-plane ICP, land in a few
-basins, the right one among them often enough (docs/ALIGNER.md, "A third look: the maps'
-geometry, judged by free space and colour").
+propose alignments, and so do the rotations between the two maps' dominant planes
+(`fleetmap.align.manhattan`, where FPFH's histograms of two partial views differ); each
+start refined by point-to-plane ICP lands in one of a few basins, the right one among them
+often enough (docs/ALIGNER.md, "A third look: the maps' geometry, judged by free space and
+colour", and its session 16 part).
 
 Geometry alone does not decide: on rooms of floor and walls a wrong basin may put no point
 in space the other robot saw empty (cross-recording pairs up to 1.00 both ways), and a
