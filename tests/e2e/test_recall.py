@@ -43,6 +43,26 @@ def merge_windows(tmp_path, a, b, seed: int, T_true_src: np.ndarray):
     return fit, error_at_cameras(np.array(report["transforms"]["B"]), T_true, tmp_path / "B")
 
 
+def hololens_windows(tmp_path, hololens, a: tuple, b: tuple, seed: int):
+    """`merge_windows` of hl_a frames a[0]:a[1] and hl_b frames b[0]:b[1]."""
+    return merge_windows(
+        tmp_path,
+        (hololens / "hl_a", slice(*a)),
+        (hololens / "hl_b", slice(*b)),
+        seed,
+        np.loadtxt(hololens / "T_a_b.txt"),
+    )
+
+
+def merged_near_truth(fit: dict, err, method: str) -> None:
+    """The fit merged, by a method that starts or ends with `method`, and B's transform
+    lies within 5 cm / 2 deg of the truth at B's cameras."""
+    how = fit.get("method", "")
+    assert fit["merged"] and (how.startswith(method) or how.endswith(method)), fit
+    dt, dr = err
+    assert dt < 0.05 and dr < 2.0, (dt, dr, fit)
+
+
 def test_unverified_revisit_is_merged_and_another_building_is_not(hololens, sun3d, tmp_path):
     """Two windows of the HoloLens walk sharing half their surfaces (hl_a frames 15-75, hl_b
     15-75) get no keyframe pair verified by the cascade (so they stayed unmerged before);
@@ -72,16 +92,8 @@ def test_room_walked_the_other_way_is_merged_on_a_second_look(hololens, tmp_path
     direction: 1 of 730 raw MSER+SIFT matches agreed with the truth and the gate refused
     ("0 inlier correspondences"). Affine-simulated SIFT on a few views of each (the second
     look) finds matches that agree; merged within 5 cm / 2 deg of the truth."""
-    fit, err = merge_windows(
-        tmp_path,
-        (hololens / "hl_a", slice(15, 75)),
-        (hololens / "hl_b", slice(30, 90)),
-        31,
-        np.loadtxt(hololens / "T_a_b.txt"),
-    )
-    assert fit["merged"] and fit["method"].endswith("+asift"), fit
-    dt, dr = err
-    assert dt < 0.05 and dr < 2.0, (dt, dr, fit)
+    fit, err = hololens_windows(tmp_path, hololens, (15, 75), (30, 90), 31)
+    merged_near_truth(fit, err, "+asift")
 
 
 def test_second_look_merges_only_what_its_matches_pin(sun3d, tmp_path):
@@ -109,16 +121,8 @@ def test_room_seen_from_elsewhere_is_merged_on_its_geometry_and_colour(hololens,
     with the truth, and both image looks refused. The third look's FPFH basins on the
     views' depth find the truth's, whose free space and grey levels agree; merged within
     5 cm / 2 deg of the truth."""
-    fit, err = merge_windows(
-        tmp_path,
-        (hololens / "hl_a", slice(30, 90)),
-        (hololens / "hl_b", slice(90, 150)),
-        51,
-        np.loadtxt(hololens / "T_a_b.txt"),
-    )
-    assert fit["merged"] and fit["method"].startswith("fpfh"), fit
-    dt, dr = err
-    assert dt < 0.05 and dr < 2.0, (dt, dr, fit)
+    fit, err = hololens_windows(tmp_path, hololens, (30, 90), (90, 150), 51)
+    merged_near_truth(fit, err, "fpfh")
 
 
 def test_room_seen_across_its_planes_is_merged(hololens, tmp_path):
@@ -130,13 +134,5 @@ def test_room_seen_across_its_planes_is_merged(hololens, tmp_path):
     within 5 cm / 2 deg of the truth. The pair sits at the bar: of three random map frames
     tried, these (71, 72) and 81's merge, 61's is refused at firm consistency 0.89 (clouds
     voxelised in each map's own frame differ a little: docs/ALIGNER.md)."""
-    fit, err = merge_windows(
-        tmp_path,
-        (hololens / "hl_a", slice(60, 120)),
-        (hololens / "hl_b", slice(75, 135)),
-        71,
-        np.loadtxt(hololens / "T_a_b.txt"),
-    )
-    assert fit["merged"] and fit["method"].startswith("fpfh"), fit
-    dt, dr = err
-    assert dt < 0.05 and dr < 2.0, (dt, dr, fit)
+    fit, err = hololens_windows(tmp_path, hololens, (60, 120), (75, 135), 71)
+    merged_near_truth(fit, err, "fpfh")
