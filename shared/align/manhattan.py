@@ -42,7 +42,9 @@ def dominant_frame(normals: np.ndarray) -> np.ndarray | None:
         return None
     dirs = np.random.default_rng(0).normal(size=(3000, 3))
     dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-    d1, _ = _peak(n, dirs)
+    d1, count = _peak(n, dirs)
+    if count < MIN_SECOND_SHARE * len(n) or not np.isfinite(d1).all():
+        return None  # no direction holds even a few normals (zero or scattered normals)
     perp = n[np.abs(n @ d1) < np.sin(np.radians(PERPENDICULAR_TOL_DEG))]
     if len(perp) < MIN_SECOND_SHARE * len(n):
         return None
@@ -63,6 +65,8 @@ def _peak(n: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, int]:
     counts = (np.abs(n @ dirs.T) > cos).sum(0)
     d = dirs[int(np.argmax(counts))]
     near = n[np.abs(n @ d) > cos]
+    if len(near) == 0:
+        return d, 0
     near = near * np.sign(near @ d)[:, None]
     mean = near.mean(0)
     return mean / np.linalg.norm(mean), int(counts.max())

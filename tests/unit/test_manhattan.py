@@ -33,6 +33,8 @@ def test_dominant_frame_finds_a_rooms_axes_and_no_frame_in_one_plane():
         assert abs(F[:, k] @ (R @ axis)) > np.cos(np.radians(2)), k
     floor = np.tile([0.0, 0.0, 1.0], (500, 1)) + rng.normal(scale=0.03, size=(500, 3))
     assert dominant_frame(floor / np.linalg.norm(floor, axis=1)[:, None]) is None
+    assert dominant_frame(np.zeros((500, 3))) is None  # normals Open3D could not estimate
+    assert dominant_frame(np.zeros((10, 3))) is None  # too few to tell
 
 
 def test_the_cube_has_24_rotations():
