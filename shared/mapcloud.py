@@ -133,8 +133,8 @@ class ViewsCloud:
                 p, uv = depth_to_points(v.depth, v.intrinsics, self.stride, self.max_depth)
                 ok = backproject_pixels(uv, v.depth, v.intrinsics, self.max_depth)[1]
                 parts.append(apply(v.T_map_cam, p[ok]))
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(parts)))
-            self._off_edges[voxel] = np.asarray(cloud.voxel_down_sample(voxel).points)
+            cloud = MapCloud(np.concatenate(parts), None).o3d(voxel, normals=False)
+            self._off_edges[voxel] = np.asarray(cloud.points)
         return self._off_edges[voxel]
 
 

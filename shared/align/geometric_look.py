@@ -138,16 +138,13 @@ def _land(found: list[list], T: np.ndarray, probe: np.ndarray, voxel: float) -> 
     found.append([T, 1])
 
 
-def judge(T: np.ndarray, clouds, seen, voxel: float, off_edges: bool = True) -> Judged:
-    """Overlap, firm free-space consistency (at half a voxel; of the points off depth
-    edges, `ViewsCloud.off_edges`, unless `off_edges` is False) and grey-level correlation
-    of an alignment, both ways. `seen`: each robot's views as `SeenDepth`."""
+def judge(T: np.ndarray, clouds, seen, voxel: float) -> Judged:
+    """Overlap, firm free-space consistency (at half a voxel, of the points off depth
+    edges: `ViewsCloud.off_edges`) and grey-level correlation of an alignment, both ways.
+    `seen`: each robot's views as `SeenDepth`."""
     half = voxel / 2
     ca, cb = clouds[0].at(half), clouds[1].at(half)
-    if off_edges:
-        pa, pb = (c.off_edges(2 * voxel) for c in clouds)
-    else:
-        pa, pb = (np.asarray(c.at(2 * voxel).points) for c in clouds)
+    pa, pb = (c.off_edges(2 * voxel) for c in clouds)
     s_b, _, f_b = free_space_check(apply(T, pb), seen[0], margin=half, rel_margin=0.0)
     s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], margin=half, rel_margin=0.0)
     r, n = grey_correlation(ca, cb, T, half)

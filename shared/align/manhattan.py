@@ -26,9 +26,9 @@ import numpy as np
 NORMAL_TOL_DEG = 8.0
 #: the second direction's normals lie within this of perpendicular to the first's
 PERPENDICULAR_TOL_DEG = 10.0
-#: a second direction needs this share of the normals: fewer, and the map has one plane
-#: orientation only (a floor, a table top) and no frame
-MIN_SECOND_SHARE = 0.03
+#: each of the two directions needs this share of the normals: fewer for the second, and
+#: the map has one plane orientation only (a floor, a table top) and no frame
+MIN_SHARE = 0.03
 #: translations tried per rotation (local maxima of the occupancy correlation); on the
 #: HoloLens pairs the right one was the best or second best of all 144 at two voxels
 PEAKS = 6
@@ -43,15 +43,15 @@ def dominant_frame(normals: np.ndarray) -> np.ndarray | None:
     dirs = np.random.default_rng(0).normal(size=(3000, 3))
     dirs /= np.linalg.norm(dirs, axis=1)[:, None]
     d1, count = _peak(n, dirs)
-    if count < MIN_SECOND_SHARE * len(n) or not np.isfinite(d1).all():
+    if count < MIN_SHARE * len(n) or not np.isfinite(d1).all():
         return None  # no direction holds even a few normals (zero or scattered normals)
     perp = n[np.abs(n @ d1) < np.sin(np.radians(PERPENDICULAR_TOL_DEG))]
-    if len(perp) < MIN_SECOND_SHARE * len(n):
+    if len(perp) < MIN_SHARE * len(n):
         return None
     flat = dirs - (dirs @ d1)[:, None] * d1
     flat /= np.maximum(np.linalg.norm(flat, axis=1), 1e-9)[:, None]
     d2, count = _peak(perp, flat)
-    if count < MIN_SECOND_SHARE * len(n):
+    if count < MIN_SHARE * len(n):
         return None
     d2 = d2 - (d2 @ d1) * d1
     d2 /= np.linalg.norm(d2)
