@@ -76,11 +76,16 @@ def test_images_install_the_hashed_lock_only():
         text = (ROOT / "docker" / f"{name}.Dockerfile").read_text()
         assert "pip install --no-cache-dir --require-hashes -r /tmp/requirements.lock" in text
         assert "COPY docker/requirements.lock /tmp/requirements.lock" in text
-        # the project itself with the locked build backend, and no other requirement
-        assert re.findall(r"pip install [^\n]*", text) == [
+        # the project itself built with the locked build backend into a wheel, installed
+        # alone on the locked venv (no index reached): no other requirement
+        assert re.findall(r"pip (?:install|wheel) [^\n]*", text) == [
             "pip install --no-cache-dir --require-hashes -r /tmp/requirements.lock \\",
-            "pip install --no-cache-dir --no-deps --no-build-isolation /src",
+            "pip wheel --no-cache-dir --no-deps --no-build-isolation --wheel-dir /wheels /src",
+            "pip install --no-cache-dir --no-deps --no-index /tmp/wheels/*.whl"
+            " && rm -rf /tmp/wheels",
         ]
+        # the venv of the dependencies is copied from the stage before the project's
+        assert "COPY --from=deps /opt/venv /opt/venv" in text
     pins = _lock()
     assert all(hashes for _, hashes in pins.values())
     assert pins["torch"][0] == "2.13.0+cpu" and "open3d-cpu" in pins and "open3d" not in pins
