@@ -59,16 +59,9 @@ def test_plane_starts_reach_the_truth_where_fpfh_matches_do_not(hololens):
     from fleetmap.align.geometric_look import basins
     from fleetmap.align.hypotheses import probe_points
     from fleetmap.align.types import GeometricLook
-    from fleetmap.fleet.view_choice import load_view
     from fleetmap.geometry import displacement_rms
-    from fleetmap.mapcloud import ViewsCloud
 
-    ra, rb = (read_recording(hololens / n) for n in ("hl_a", "hl_b"))
-    clouds = (
-        ViewsCloud([load_view(ra, i) for i in range(60, 120, 5)]),
-        ViewsCloud([load_view(rb, i) for i in range(75, 135, 5)]),
-    )
-    T_true = np.loadtxt(hololens / "T_a_b.txt")
+    clouds, T_true = _windows(hololens)
     voxel = 0.12  # the third look's: 5% of these views' median depth (2.4 m)
     probe = probe_points(clouds[1].at(voxel))
     planes_only = basins(clouds, voxel, GeometricLook(seeds=1, iterations=1, plane_starts=16))
@@ -76,3 +69,44 @@ def test_plane_starts_reach_the_truth_where_fpfh_matches_do_not(hololens):
     assert min(errors) < 0.1, errors
     best = planes_only[int(np.argmin(errors))][0]
     assert transform_error(best, T_true)[1] < 2.0
+
+
+def _windows(hololens):
+    """Each robot's views of hl_a frames 60-120 and hl_b 75-135 (every 5th) as `ViewsCloud`s,
+    and the true T_a_b."""
+    from fleetmap.fleet.view_choice import load_view
+    from fleetmap.mapcloud import ViewsCloud
+
+    ra, rb = (read_recording(hololens / n) for n in ("hl_a", "hl_b"))
+    clouds = (
+        ViewsCloud([load_view(ra, i) for i in range(60, 120, 5)]),
+        ViewsCloud([load_view(rb, i) for i in range(75, 135, 5)]),
+    )
+    return clouds, np.loadtxt(hololens / "T_a_b.txt")
+
+
+def test_the_screen_skips_only_basins_that_could_not_pass(hololens):
+    """The third look refines and judges only basins whose grey levels correlate at least
+    `min_correlation` - `COARSE_SLACK` before refining. On the same windows, every basin it
+    skips correlates under the bar after refining too, and the basin at the truth is kept."""
+    from fleetmap.align import geometric_look as G
+    from fleetmap.align.hypotheses import probe_points
+    from fleetmap.align.types import GeometricLook
+    from fleetmap.geometry import displacement_rms
+
+    clouds, T_true = _windows(hololens)
+    voxel, look = 0.12, GeometricLook(seeds=4, iterations=20_000, plane_starts=16)
+    probe = probe_points(clouds[1].at(voxel))
+    ca, cb = (c.at(voxel) for c in clouds)
+    fa, fb = (c.at(voxel / 2) for c in clouds)
+    skipped = kept_truth = 0
+    for T, _ in G.basins(clouds, voxel, look, 0.1):
+        before = G.grey_correlation(ca, cb, T, voxel)[0]
+        fine = G.refine(T, clouds, voxel)
+        if not before >= look.min_correlation - G.COARSE_SLACK:
+            skipped += 1
+            after = G.grey_correlation(fa, fb, fine, voxel / 2)[0]
+            assert not after >= look.min_correlation, (before, after)
+        elif displacement_rms(fine, T_true, probe) < 0.1:
+            kept_truth += 1
+    assert skipped and kept_truth, (skipped, kept_truth)
