@@ -181,9 +181,10 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
     seen = tuple([SeenDepth(v) for v in views] for views in pair.views)  # kept for `choose` too
     judged, found = [], basins(clouds, voxel, look, p.min_overlap)
-    coarse = [grey_correlation(*(c.at(voxel) for c in clouds), T, voxel)[0] for T, _ in found]
+    ca, cb, screen = clouds[0].at(voxel), clouds[1].at(voxel), look.min_correlation - COARSE_SLACK
+    coarse = [grey_correlation(ca, cb, T, voxel)[0] for T, _ in found]
     for (T, n), r in zip(found, coarse, strict=True):
-        if r >= look.min_correlation - COARSE_SLACK:  # NaN (under 30 points meet) is not
+        if r >= screen:  # NaN (under 30 points meet) is not
             j = judge(refine(T, clouds, voxel), clouds, seen, voxel)
             j.seeds = n
             judged.append(j)
@@ -194,7 +195,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
             r = max((x for x in coarse if np.isfinite(x)), default=float("nan"))
             return AlignResult(
                 False, f"no alignment passes: grey-level correlation at best {r:.2f} before "
-                f"refining (need {look.min_correlation})",
+                f"refining (judged from {screen:.2f}, need {look.min_correlation})",
             )  # fmt: skip
         best = max(judged, key=lambda j: j.score)
         return AlignResult(False, f"no alignment passes: at best {best.why_not(look, p)}")
