@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from fleetmap import matching
 from fleetmap.matching import match_descriptors_at, mutual_best
@@ -43,6 +44,25 @@ def test_blocked_matching_is_the_whole_matrix_matching(monkeypatch):
         n, m = rng.integers(2, 40, size=2)
         da = rng.integers(0, 3, size=(n, 4)).astype(np.float32)
         db = rng.integers(0, 3, size=(m, 4)).astype(np.float32)
+        found = match_descriptors_at(da, db, (0.8, 1.0))
+        for ratio, (ia, ib) in zip((0.8, 1.0), found, strict=True):
+            ja, jb = _matches_from_the_whole_matrix(da, db, ratio)
+            assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
+
+
+def test_int8_products_give_the_whole_matrix_matching(monkeypatch):
+    """The 8-bit product path (torch installed) on uint8 descriptors over the whole 0-255
+    range, with ties and several blocks: the same matches as the definition."""
+    if matching._torch() is None:
+        pytest.skip("torch is not installed (a robot's install): numpy's product is used")
+    monkeypatch.setattr(matching, "_BLOCK", 7)
+    monkeypatch.setattr(matching, "INT8_MIN_ENTRIES", 1)
+    rng = np.random.default_rng(6)
+    for _ in range(60):
+        n, m = rng.integers(2, 40, size=2)
+        levels = rng.choice([0, 1, 2, 127, 128, 254, 255], size=(n + m, 6))
+        da, db = levels[:n].astype(np.uint8), levels[n:].astype(np.uint8)
+        assert matching._products(da, db) is not None
         found = match_descriptors_at(da, db, (0.8, 1.0))
         for ratio, (ia, ib) in zip((0.8, 1.0), found, strict=True):
             ja, jb = _matches_from_the_whole_matrix(da, db, ratio)
