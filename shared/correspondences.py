@@ -15,6 +15,7 @@ import numpy as np
 
 from fleetmap.camera import Intrinsics, backproject_pixels
 from fleetmap.errors import BadInput
+from fleetmap.feature_cache import FeatureCache, cached, salt_of
 from fleetmap.features import FeatureParams, LocalFeatures, detect_and_describe
 from fleetmap.geometry import apply, check_transform
 from fleetmap.matching import MatchParams, match_descriptors_at, verify_pair
@@ -74,7 +75,20 @@ class Correspondences:
 
 
 def view_features(view: RGBDView, params: FeatureParams = ALIGN_FEATURES) -> LocalFeatures:
-    return detect_and_describe(view.rgb, params)
+    """A view's MSER + SIFT at the aligner's settings (kept by `fleetmap.feature_cache`
+    where one is on)."""
+
+    def make() -> dict:
+        f = detect_and_describe(view.rgb, params)
+        return {"keypoints": f.keypoints, "descriptors": f.descriptors}
+
+    f = cached(
+        FeatureCache.from_env(salt_of(params, "aligner view")),
+        view.rgb,
+        ("keypoints", "descriptors"),
+        make,
+    )
+    return LocalFeatures(f["keypoints"], f["descriptors"])
 
 
 def pair_correspondences(

@@ -11,6 +11,7 @@ import numpy as np
 from fleetmap.camera import Intrinsics, backproject_pixels
 from fleetmap.dataset import Recording, load_depth, load_rgb
 from fleetmap.errors import BadInput
+from fleetmap.feature_cache import FeatureCache, cached, salt_of
 from fleetmap.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
 from fleetmap.features import FeatureParams, detect_and_describe
 from fleetmap.frame import Frame
@@ -21,6 +22,9 @@ from fleetmap.vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
 
+#: A keyframe's features that depend on its colour image alone (`FrameExtractor.image_features`)
+IMAGE_FIELDS = ("gist", "keypoints", "descriptors", "bow_ids", "bow_counts")
+
 
 @dataclass
 class FrameExtractor:
@@ -28,6 +32,29 @@ class FrameExtractor:
 
     vocabulary: Vocabulary
     feature_params: FeatureParams = field(default_factory=lambda: FEATURE_DEFAULTS)
+    #: features kept by image (`fleetmap.feature_cache`); default `$FLEETMAP_FEATURE_CACHE`
+    cache: FeatureCache | None = None
+    use_env_cache: bool = True
+
+    def __post_init__(self) -> None:
+        if self.cache is None and self.use_env_cache:
+            salt = salt_of(
+                self.feature_params, self.vocabulary.gist_params, self.vocabulary.vocab_id
+            )
+            self.cache = FeatureCache.from_env(salt)
+
+    def image_features(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
+        """GIST (float16), keypoints, descriptors and bag of words of a colour image: from
+        the cache where it holds them, else computed (and kept there)."""
+
+        def make() -> dict:
+            local = detect_and_describe(rgb, self.feature_params)
+            ids, counts = self.vocabulary.bow(local.descriptors)
+            gist = compute_gist(rgb, self.vocabulary.gist_params).astype(np.float16)
+            arrays = (gist, local.keypoints, local.descriptors, ids, counts)
+            return dict(zip(IMAGE_FIELDS, arrays, strict=True))
+
+        return cached(self.cache, rgb, IMAGE_FIELDS, make)
 
     def __call__(
         self,
@@ -50,23 +77,21 @@ class FrameExtractor:
         if rgb.ndim not in (2, 3):
             raise BadInput(f"Expected an image of shape (H, W[, 3]), got {rgb.shape}")
         h, w = rgb.shape[:2]
-        gist = compute_gist(rgb, self.vocabulary.gist_params)
-        local = detect_and_describe(rgb, self.feature_params)
-        ids, counts = self.vocabulary.bow(local.descriptors)
+        f = self.image_features(rgb)
         points = valid = None
         if depth is not None and intrinsics is not None and T_map_cam is not None:
             if depth.shape != (h, w):
                 raise BadInput(f"Depth of shape {depth.shape} does not match colour {(h, w)}")
-            p_cam, valid = backproject_pixels(local.keypoints, depth, intrinsics)
+            p_cam, valid = backproject_pixels(f["keypoints"], depth, intrinsics)
             points = np.where(valid[:, None], apply(T_map_cam, p_cam), 0.0).astype(np.float32)
         return Frame(
             robot_id=robot_id,
             stamp=stamp,
-            gist=gist.astype(np.float16),
-            keypoints=local.keypoints,
-            descriptors=local.descriptors,
-            bow_ids=ids,
-            bow_counts=counts,
+            gist=f["gist"],
+            keypoints=f["keypoints"],
+            descriptors=f["descriptors"],
+            bow_ids=f["bow_ids"],
+            bow_counts=f["bow_counts"],
             T_map_cam=T_map_cam,
             points=points,
             point_valid=valid,

@@ -39,6 +39,27 @@ def data_path(*parts: str) -> Path:
     return p
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _feature_cache(tmp_path_factory):
+    """One features cache for the run (`fleetmap.feature_cache`), shared by its xdist workers
+    and every process the tests start: a keyframe's image features are extracted the first
+    time the suite meets its image (the same SUN3D and HoloLens frames are merged by many
+    tests: whole recordings, windows, drifted copies) and read back after, bit for bit
+    (tests/unit/test_feature_cache.py). Depth, poses and all the rest are computed each
+    time. A run that names its own cache keeps it."""
+    from fleetmap.feature_cache import ENV
+
+    if os.environ.get(ENV):
+        yield
+        return
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # this run's folder, with the workers' own in it
+    os.environ[ENV] = str(base / "feature-cache")
+    yield
+    os.environ.pop(ENV, None)
+
+
 @pytest.fixture(scope="session")
 def sun3d() -> Path:
     return data_path("sun3d_studyroom")

@@ -21,7 +21,8 @@ import numpy as np
 
 from fleetmap.align.types import SecondLook, unique_views
 from fleetmap.correspondences import Correspondences, lift
-from fleetmap.features import affine_features
+from fleetmap.feature_cache import FeatureCache, cached, salt_of
+from fleetmap.features import SIFT_LAYERS, SIFT_SIGMA, LocalFeatures, affine_features
 from fleetmap.matching import match_descriptors
 
 
@@ -58,6 +59,22 @@ _FEATURES = _Recent(48)  # about 6,000 features (0.8 MB) a view
 _MATCHES = _Recent(1024)
 
 
+def _affine(image: np.ndarray, max_tilt: int, per_view: int) -> LocalFeatures:
+    """`affine_features`, kept by `fleetmap.feature_cache` where one is on."""
+
+    def make() -> dict:
+        f = affine_features(image, max_tilt, per_view)
+        return {"keypoints": f.keypoints, "descriptors": f.descriptors}
+
+    f = cached(
+        FeatureCache.from_env(salt_of("asift", max_tilt, per_view, SIFT_LAYERS, SIFT_SIGMA)),
+        image,
+        ("keypoints", "descriptors"),
+        make,
+    )
+    return LocalFeatures(f["keypoints"], f["descriptors"])
+
+
 def image_key(image: np.ndarray) -> bytes:
     """A digest of an image's pixels and shape."""
     h = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16)
@@ -75,7 +92,7 @@ def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
     keys = [(image_key(v.rgb), s.max_tilt, s.per_view) for v in views]
 
     def features(k: int):
-        return _FEATURES.get(keys[k], lambda: affine_features(views[k].rgb, *keys[k][1:]))
+        return _FEATURES.get(keys[k], lambda: _affine(views[k].rgb, *keys[k][1:]))
 
     with ThreadPoolExecutor(2) as ex:  # OpenCV releases the GIL
         feats = list(ex.map(features, range(len(views))))
