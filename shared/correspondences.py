@@ -10,12 +10,13 @@ more than count).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from fleetmap.camera import Intrinsics, backproject_pixels
 from fleetmap.errors import BadInput
-from fleetmap.feature_cache import FeatureCache, cached, salt_of
+from fleetmap.feature_cache import cached_local
 from fleetmap.features import FeatureParams, LocalFeatures, detect_and_describe
 from fleetmap.geometry import apply, check_transform
 from fleetmap.matching import MatchParams, match_descriptors_at, verify_pair
@@ -77,18 +78,8 @@ class Correspondences:
 def view_features(view: RGBDView, params: FeatureParams = ALIGN_FEATURES) -> LocalFeatures:
     """A view's MSER + SIFT at the aligner's settings (kept by `fleetmap.feature_cache`
     where one is on)."""
-
-    def make() -> dict:
-        f = detect_and_describe(view.rgb, params)
-        return {"keypoints": f.keypoints, "descriptors": f.descriptors}
-
-    f = cached(
-        FeatureCache.from_env(salt_of(params, "aligner view")),
-        view.rgb,
-        ("keypoints", "descriptors"),
-        make,
-    )
-    return LocalFeatures(f["keypoints"], f["descriptors"])
+    detect = partial(detect_and_describe, view.rgb, params)
+    return cached_local(view.rgb, detect, params, "aligner view")
 
 
 def pair_correspondences(

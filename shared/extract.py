@@ -34,10 +34,9 @@ class FrameExtractor:
     feature_params: FeatureParams = field(default_factory=lambda: FEATURE_DEFAULTS)
     #: features kept by image (`fleetmap.feature_cache`); default `$FLEETMAP_FEATURE_CACHE`
     cache: FeatureCache | None = None
-    use_env_cache: bool = True
 
     def __post_init__(self) -> None:
-        if self.cache is None and self.use_env_cache:
+        if self.cache is None:
             salt = salt_of(
                 self.feature_params, self.vocabulary.gist_params, self.vocabulary.vocab_id
             )

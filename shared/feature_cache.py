@@ -46,9 +46,7 @@ class FeatureCache:
         return cls(root, salt) if root else None
 
     def key(self, image: np.ndarray) -> str:
-        h = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=20)
-        h.update(f"{image.shape}{image.dtype}{self.salt}".encode())
-        return h.hexdigest()
+        return digest(image, self.salt)
 
     def get(self, key: str, fields: tuple[str, ...]) -> dict[str, np.ndarray] | None:
         """The arrays `fields` kept under `key`, or None (absent, unreadable, incomplete)."""
@@ -79,6 +77,13 @@ class FeatureCache:
             Path(tmp).unlink(missing_ok=True)
 
 
+def digest(image: np.ndarray, salt: str = "") -> str:
+    """A digest (hex) of an image's pixels, shape and type, and of `salt`."""
+    h = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=20)
+    h.update(f"{image.shape}{image.dtype}{salt}".encode())
+    return h.hexdigest()
+
+
 def salt_of(*parts) -> str:
     """What features depend on besides the image: this package's version and `parts`
     (settings dataclasses, the vocabulary's id), as text."""
@@ -100,3 +105,18 @@ def cached(
     if key:
         cache.put(key, out)
     return out
+
+
+def cached_local(image: np.ndarray, detect, *settings):
+    """`detect()`: the `LocalFeatures` of `image` under `settings`, or the ones it gave
+    before, where `$FLEETMAP_FEATURE_CACHE` names a cache (the aligner's views)."""
+    from fleetmap.features import LocalFeatures
+
+    fields = ("keypoints", "descriptors")
+
+    def make() -> dict:
+        f = detect()
+        return {"keypoints": f.keypoints, "descriptors": f.descriptors}
+
+    f = cached(FeatureCache.from_env(salt_of(*settings)), image, fields, make)
+    return LocalFeatures(f["keypoints"], f["descriptors"])

@@ -12,16 +12,16 @@ look's raw matches: the same hypotheses, free-space test and gate judge them all
 
 from __future__ import annotations
 
-import hashlib
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 
 from fleetmap.align.types import SecondLook, unique_views
 from fleetmap.correspondences import Correspondences, lift
-from fleetmap.feature_cache import FeatureCache, cached, salt_of
+from fleetmap.feature_cache import cached_local, digest
 from fleetmap.features import SIFT_LAYERS, SIFT_SIGMA, LocalFeatures, affine_features
 from fleetmap.matching import match_descriptors
 
@@ -61,25 +61,13 @@ _MATCHES = _Recent(1024)
 
 def _affine(image: np.ndarray, max_tilt: int, per_view: int) -> LocalFeatures:
     """`affine_features`, kept by `fleetmap.feature_cache` where one is on."""
-
-    def make() -> dict:
-        f = affine_features(image, max_tilt, per_view)
-        return {"keypoints": f.keypoints, "descriptors": f.descriptors}
-
-    f = cached(
-        FeatureCache.from_env(salt_of("asift", max_tilt, per_view, SIFT_LAYERS, SIFT_SIGMA)),
-        image,
-        ("keypoints", "descriptors"),
-        make,
-    )
-    return LocalFeatures(f["keypoints"], f["descriptors"])
+    detect = partial(affine_features, image, max_tilt, per_view)
+    return cached_local(image, detect, "asift", max_tilt, per_view, SIFT_LAYERS, SIFT_SIGMA)
 
 
-def image_key(image: np.ndarray) -> bytes:
+def image_key(image: np.ndarray) -> str:
     """A digest of an image's pixels and shape."""
-    h = hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16)
-    h.update(repr(image.shape).encode())
-    return h.digest()
+    return digest(image)
 
 
 def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
