@@ -68,7 +68,14 @@ def _init(vocab_path, worker: bool = True) -> None:
     from fleetmap.vocabulary import load_vocabulary
 
     if worker:  # one process per core already; never in the caller's own process, whose
-        cv2.setNumThreads(1)  # aligner and place database would stay on one thread after
+        # aligner and place database would stay on one thread after. OpenBLAS too: its
+        # threads spin after each product (the bag of words' one), and two workers' spinning
+        # threads doubled the extraction of two HoloLens robots (py-spy: 4.7 s of
+        # `Vocabulary.bow` in the workers for 0.13 s of work; 10.2 -> 4.5 s wall)
+        from threadpoolctl import threadpool_limits
+
+        cv2.setNumThreads(1)
+        threadpool_limits(1)
     global _extractor
     _extractor = FrameExtractor(load_vocabulary(vocab_path))
 

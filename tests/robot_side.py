@@ -33,7 +33,6 @@ SERVER_IMPORTS: dict[str, tuple[str, ...]] = {
     "swagger-ui-bundle": ("swagger_ui_bundle",),
     "psycopg": ("psycopg", "psycopg_binary"),
     "psycopg-pool": ("psycopg_pool",),
-    "threadpoolctl": ("threadpoolctl",),
     "mcap": ("mcap",),
     "mcap-protobuf-support": ("mcap_protobuf",),
     "foxglove-schemas-protobuf": ("foxglove_schemas_protobuf",),
