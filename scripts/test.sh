@@ -9,5 +9,13 @@ bash scripts/install.sh
 .venv/bin/ruff format --check .
 workers=${FLEETMAP_TEST_WORKERS:-2}
 xdist=()
-[ "$workers" = 0 ] || xdist=(-n "$workers" --dist loadgroup)
+if [ "$workers" != 0 ]; then
+    xdist=(-n "$workers" --dist loadgroup)
+    # the cores shared out: each worker's BLAS and OpenMP kernels (numpy, torch, Open3D,
+    # faiss) get its share, so one worker's idle threads do not spin against the other's
+    # (docs/BENCHMARKS.md, session 19: on 2 cores the suite 426 -> 365 s, CPU 724 -> 596 s)
+    share=$(($(nproc) / workers))
+    [ "$share" -ge 1 ] || share=1
+    export OPENBLAS_NUM_THREADS=${OPENBLAS_NUM_THREADS:-$share} OMP_NUM_THREADS=${OMP_NUM_THREADS:-$share}
+fi
 .venv/bin/python -m pytest -p no:dash "${xdist[@]}" "$@"
