@@ -133,16 +133,16 @@ def _mean_map_error(robot_dir: Path, T: np.ndarray, T_true: np.ndarray) -> float
 
 
 @pytest.mark.slow
-def test_merge_hololens_and_a_robot_from_another_building(hololens, sun3d, tmp_path):
+def test_merge_hololens_robots_that_revisit_a_kitchen(hololens, tmp_path):
     """Two real HoloLens robots that revisit a kitchen merge within 2.5 cm mean map-point
-    error (head tracking holds 1-2 cm); a third robot recorded in another building (the
-    SUN3D study room) shares no place with them and stays unmerged."""
+    error (head tracking holds 1-2 cm). A robot from another building left unmerged beside
+    them: test_recall.py's `test_unverified_revisit_is_merged_and_another_building_is_not`
+    (here it cost 24 of the test's 40 s for the same assertion)."""
     out = tmp_path / "out"
-    args = [f"A={hololens / 'hl_a'}", f"B={hololens / 'hl_b'}", f"S={sun3d / 'robot_a'}"]
+    args = [f"A={hololens / 'hl_a'}", f"B={hololens / 'hl_b'}"]
     assert main(["merge", *args, "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["unmerged"] == ["S"], report["fits"]
+    assert report["unmerged"] == [], report["fits"]
     T_true = np.loadtxt(hololens / "T_a_b.txt")
     err = _mean_map_error(hololens / "hl_b", np.array(report["transforms"]["B"]), T_true)
     assert err < 0.025, err
-    assert not any("S" in (f["robot_a"], f["robot_b"]) and f["merged"] for f in report["fits"])
