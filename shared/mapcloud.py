@@ -59,7 +59,7 @@ class MapCloud:
             pc.colors = o3d.utility.Vector3dVector(self.colours / 255.0)
         pc = pc.voxel_down_sample(voxel)
         if normals:
-            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
+            with_normals(pc, voxel)
         return pc
 
     def voxelised(self, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -67,6 +67,13 @@ class MapCloud:
         pc = self.o3d(voxel, normals=False)
         cols = np.round(np.asarray(pc.colors) * 255).astype(np.uint8)
         return np.asarray(pc.points), cols
+
+
+def with_normals(pc: o3d.geometry.PointCloud, voxel: float) -> o3d.geometry.PointCloud:
+    """`pc` (voxelised at `voxel`) given normals, in place: the local plane of its points
+    within three voxels (at most 30)."""
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
+    return pc
 
 
 def view_points(
@@ -117,10 +124,18 @@ class ViewsCloud:
         self._at: dict[float, o3d.geometry.PointCloud] = {}
         self._off_edges: dict[float, np.ndarray] = {}
 
-    def at(self, voxel: float) -> o3d.geometry.PointCloud:
-        if voxel not in self._at:
-            self._at[voxel] = self.raw.o3d(voxel)
-        return self._at[voxel]
+    def at(self, voxel: float, normals: bool = True) -> o3d.geometry.PointCloud:
+        """The cloud at `voxel`, with normals unless `normals` is False: a cloud only moved
+        onto another (ICP's source: point-to-plane and coloured ICP read the target's
+        normals alone) or only counted never needs them, and they are most of a cloud's
+        cost (a third of a first-look alignment's). Asked for later, they are added to the
+        same cloud, as they would have been made."""
+        pc = self._at.get(voxel)
+        if pc is None:
+            pc = self._at[voxel] = self.raw.o3d(voxel, normals=False)
+        if normals and not pc.has_normals():
+            with_normals(pc, voxel)
+        return pc
 
     def off_edges(self, voxel: float) -> np.ndarray:
         """The points (N, 3) at `voxel` of the pixels off depth edges only: a pixel whose

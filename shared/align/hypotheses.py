@@ -143,7 +143,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
     clouds and views (the second look at a pair meets the first look's hypotheses again)."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     views_a, views_b = _seen(views_a), _seen(views_b)
-    ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0)
+    ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0, normals=False)  # B's: ICP's source
     probe = probe_points(cb0)
     hyps = _distinct(sorted(hyps, key=lambda h: -h.support), probe, p.dedupe_m)
     hyps = hyps[: p.max_candidates]
@@ -159,7 +159,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
         _judged(memo, "coarse", h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
     backed.sort(key=lambda h: -h.score)
     top = backed[: p.refine]
-    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
+    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1, normals=False)
     for h in top:
         _judged(memo, "fine", h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
     top.sort(key=lambda h: -h.score)
@@ -235,9 +235,9 @@ def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarra
     coarser colour scale's cloud, the last on the fine one), and multi-scale coloured ICP
     where both clouds have colour, from T0. Returns [(T_a_b, "+icp" or "+colour")]."""
     v1 = p.voxel_m
-    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1)
+    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1, normals=False)  # B's: the sources
     vm = 4 * v1 / 3
-    T, _, _ = icp(clouds[1].at(vm), clouds[0].at(vm), T0, (3 * v1, 1.5 * v1), 20)
+    T, _, _ = icp(clouds[1].at(vm, normals=False), clouds[0].at(vm), T0, (3 * v1, 1.5 * v1), 20)
     T, _, _ = icp(cb1, ca1, T, distances=(v1,), iterations=20)
     refined = [(T, "+icp")]
     if not (p.colour_icp and ca1.has_colors() and cb1.has_colors()):
@@ -245,7 +245,7 @@ def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarra
     T = T0
     try:
         for v in (vm, 2 * v1 / 3):
-            ca, cb = clouds[0].at(v), clouds[1].at(v)
+            ca, cb = clouds[0].at(v), clouds[1].at(v, normals=False)
             r = REG.registration_colored_icp(
                 cb,
                 ca,

@@ -142,7 +142,7 @@ def _align(
     (views_a, views_b), clouds = pair.views, pair.clouds()
     if p.use_icp:
         best, rivals = choose(hyps, R, views_a, views_b, clouds, p, pair.memo)
-        probe = probe_points(clouds[1].at(p.coarse_voxel_m))
+        probe = probe_points(clouds[1].at(p.coarse_voxel_m, normals=False))
         method = "rigid+icp+colour" if best.source.endswith("+colour") else "rigid+icp"
     else:
         best, rivals, probe = max(hyps, key=lambda h: h.support), [], None
@@ -193,7 +193,9 @@ def _decisive(best, clouds, p: AlignParams) -> bool:
     if best.firm_consistency < p.decisive_consistency or best.fitness < 2 * p.min_overlap:
         return False
     v = p.voxel_m
-    back = overlap_fitness(clouds[0].at(v), clouds[1].at(v), invert(best.T_a_b), 2 * v)
+    back = overlap_fitness(
+        clouds[0].at(v), clouds[1].at(v, normals=False), invert(best.T_a_b), 2 * v
+    )
     return p.decisive(best.firm_consistency, min(best.fitness, back))
 
 
@@ -275,7 +277,7 @@ def _try_mlp(out: AlignResult, R: Correspondences, inl, cloud_b, p: AlignParams)
         mlp = MLPEstimator().fit(R.X[idx], R.Y[idx])
         # a correction, not a reshaping: over B's whole map (beyond the matches, where
         # a network fitted to noise can bend away) it must stay near the rigid fit
-        pb = np.asarray(cloud_b.at(p.coarse_voxel_m).points)
+        pb = np.asarray(cloud_b.at(p.coarse_voxel_m, normals=False).points)
         bend = float(np.max(np.linalg.norm(mlp.transform(pb) - apply(out.T_a_b, pb), axis=1)))
         if bend <= 2 * p.max_holdout_m:
             out.mlp = mlp
