@@ -137,7 +137,8 @@ def basins(
 
 def refine(T: np.ndarray, clouds, voxel: float) -> np.ndarray:
     """A basin's T_a_b refined by point-to-plane ICP at half a voxel."""
-    return icp(clouds[1].at(voxel / 2), clouds[0].at(voxel / 2), T, (voxel / 2,), 30)[0]
+    b = clouds[1].at(voxel / 2, normals=False)  # ICP's source: B's normals are not read
+    return icp(b, clouds[0].at(voxel / 2), T, (voxel / 2,), 30)[0]
 
 
 def _land(found: list[list], T: np.ndarray, probe: np.ndarray, voxel: float) -> None:
@@ -154,7 +155,7 @@ def judge(T: np.ndarray, clouds, seen, voxel: float) -> Judged:
     edges: `ViewsCloud.off_edges`) and grey-level correlation of an alignment, both ways.
     `seen`: each robot's views as `SeenDepth`."""
     half = voxel / 2
-    ca, cb = clouds[0].at(half), clouds[1].at(half)
+    ca, cb = clouds[0].at(half), clouds[1].at(half, normals=False)  # B's: points, colours
     pa, pb = (c.off_edges(2 * voxel) for c in clouds)
     s_b, _, f_b = free_space_check(apply(T, pb), seen[0], margin=half, rel_margin=0.0)
     s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], margin=half, rel_margin=0.0)
