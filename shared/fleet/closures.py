@@ -164,24 +164,27 @@ def refine_with_depth(
     built (by robot, keyframe and voxel), kept between calls by the caller."""
     from threadpoolctl import threadpool_limits
 
-    from fleetmap.mapcloud import MapCloud, icp
+    from fleetmap.mapcloud import MapCloud, icp, with_normals
 
     cache = {} if cache is None else cache
     voxel = params.tol_m / 2
 
-    def cloud(r: str, i: int):
+    def cloud(r: str, i: int, normals: bool = True):
+        """A keyframe's cloud, with normals where it is ICP's target (the source's are not
+        read: they were most of a refinement's cost); completed in place when needed."""
         if (r, i, voxel) not in cache:
             kf = keyframes[r][i]
             pts = apply(invert(kf.frame.T_map_cam), kf.points.astype(np.float64))
-            cache[(r, i, voxel)] = MapCloud(pts, None).o3d(voxel)
-        return cache[(r, i, voxel)]
+            cache[(r, i, voxel)] = MapCloud(pts, None).o3d(voxel, normals=False)
+        pc = cache[(r, i, voxel)]
+        return with_normals(pc, voxel) if normals and not pc.has_normals() else pc
 
     out = []
     with threadpool_limits(1):  # many small problems: OpenMP threads only contend
         for c in closures:
             if c.source == "features":
                 T, fitness, _ = icp(
-                    cloud(c.robot_b, c.j), cloud(c.robot_a, c.i), c.T_a_b,
+                    cloud(c.robot_b, c.j, normals=False), cloud(c.robot_a, c.i), c.T_a_b,
                     distances=(params.tol_m, params.tol_m / 2), iterations=30,
                 )  # fmt: skip
                 D = invert(c.T_a_b) @ T
