@@ -65,11 +65,6 @@ def _affine(image: np.ndarray, max_tilt: int, per_view: int) -> LocalFeatures:
     return cached_local(image, detect, "asift", max_tilt, per_view, SIFT_LAYERS, SIFT_SIGMA)
 
 
-def image_key(image: np.ndarray) -> str:
-    """A digest of an image's pixels and shape."""
-    return digest(image)
-
-
 def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
     """Raw (mutual, ratio-test) ASIFT matches of every pair of `s.views` views of each
     robot, lifted to 3D in each robot's map frame; pair indices from `first_index` on.
@@ -77,7 +72,7 @@ def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
     va = spread_views(unique_views(pairs, 0), s.views)
     vb = spread_views(unique_views(pairs, 1), s.views)
     views = va + vb
-    keys = [(image_key(v.rgb), s.max_tilt, s.per_view) for v in views]
+    keys = [(digest(v.rgb), s.max_tilt, s.per_view) for v in views]
 
     def features(k: int):
         return _FEATURES.get(keys[k], lambda: _affine(views[k].rgb, *keys[k][1:]))

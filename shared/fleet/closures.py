@@ -170,14 +170,13 @@ def refine_with_depth(
     voxel = params.tol_m / 2
 
     def cloud(r: str, i: int, normals: bool = True):
-        """A keyframe's cloud, with normals where it is ICP's target (the source's are not
-        read: they were most of a refinement's cost); completed in place when needed."""
+        """A keyframe's cloud, with normals where it is ICP's target (`with_normals`)."""
         if (r, i, voxel) not in cache:
             kf = keyframes[r][i]
             pts = apply(invert(kf.frame.T_map_cam), kf.points.astype(np.float64))
             cache[(r, i, voxel)] = MapCloud(pts, None).o3d(voxel, normals=False)
         pc = cache[(r, i, voxel)]
-        return with_normals(pc, voxel) if normals and not pc.has_normals() else pc
+        return with_normals(pc, voxel) if normals else pc
 
     out = []
     with threadpool_limits(1):  # many small problems: OpenMP threads only contend
