@@ -50,7 +50,8 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
         return None
     from fleetmap.dataset import read_recording
 
-    base = read_recording(robot_dir, topics=_topics(args)).intrinsics.to_dict()
+    rec = read_recording(robot_dir, topics=_topics(args))  # the files' own size: the flags'
+    base = (rec.file_intrinsics or rec.intrinsics).to_dict()
     return Intrinsics.from_dict({**base, **overrides})
 
 

@@ -48,6 +48,20 @@ class Intrinsics:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def resized(self, width: int, height: int) -> Intrinsics:
+        """The same camera for its images resized to width x height (pixel centres kept:
+        u' + 0.5 = (u + 0.5) x width / self.width)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            self.depth_scale,
+            width,
+            height,
+        )
+
     @classmethod
     def from_dict(cls, d: dict) -> Intrinsics:
         """From {"fx", "fy", "cx", "cy", "depth_scale"[, "width", "height"]}: numbers only,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +19,16 @@ log = logging.getLogger(__name__)
 #: Colour, depth and pose are associated by nearest timestamp within this many seconds.
 MAX_ASSOCIATION_GAP_S = 0.02
 
+#: The working resolution: a recording whose images hold more pixels is read downscaled to
+#: this many (aspect kept; colour area-averaged, depth nearest so no edge gets mixed depths;
+#: intrinsics scaled with it). Every length in pixels (MSER areas, the epipolar RANSAC's
+#: 2 px, the clouds' pixel stride, the aligner's pixel budget of 2 x 12 views) was set on
+#: 512x384-640x480 sensors; a 1280x720 camera read at full size sent 1080x720 views past
+#: the aligner's budget (the merge stopped: "send fewer or smaller views") and extracted at
+#: a quarter of the speed. 3 cm voxels at 2-3 m are 5-10 pixels here: nothing the fit uses
+#: is lost.
+WORK_PIXELS = 640 * 480
+
 
 @dataclass(frozen=True)
 class FrameRecord:
@@ -31,15 +42,69 @@ class FrameRecord:
 
 @dataclass
 class Recording:
-    """A robot folder: its id, intrinsics and associated frames in time order."""
+    """A robot folder: its id, intrinsics and associated frames in time order.
+
+    `intrinsics` are those of the images as `rgb` and `depth` load them: the files' own
+    (`file_intrinsics`) unless they hold more than `WORK_PIXELS`, then downscaled."""
 
     robot_id: str
     root: Path
     intrinsics: Intrinsics
     frames: list[FrameRecord] = field(default_factory=list)
+    file_intrinsics: Intrinsics | None = None  # None: the same as `intrinsics`
 
     def __len__(self) -> int:
         return len(self.frames)
+
+    @property
+    def reader(self) -> ImageReader:
+        return ImageReader(self.intrinsics, self.file_intrinsics)
+
+    def rgb(self, f: FrameRecord) -> np.ndarray:
+        """Frame f's colour image at the working resolution, uint8 (H, W, 3) BGR."""
+        return self.reader.rgb(f.rgb_path)
+
+    def depth(self, f: FrameRecord) -> np.ndarray:
+        """Frame f's depth image at the working resolution, uint16 (H, W)."""
+        if f.depth_path is None:
+            raise BadRobotData(f"{self.robot_id}: frame {f.stamp} has no depth")
+        return self.reader.depth(f.depth_path)
+
+
+@dataclass(frozen=True)
+class ImageReader:
+    """Loads a recording's images at its working resolution (`intrinsics`): resized from
+    files of `file_intrinsics`' size, or as they are where that is None."""
+
+    intrinsics: Intrinsics
+    file_intrinsics: Intrinsics | None = None
+
+    def rgb(self, path: Path) -> np.ndarray:
+        return self._fit(load_rgb(path), cv2.INTER_AREA, path)
+
+    def depth(self, path: Path) -> np.ndarray:
+        return self._fit(load_depth(path), cv2.INTER_NEAREST, path)
+
+    def _fit(self, img: np.ndarray, interpolation: int, path: Path) -> np.ndarray:
+        if self.file_intrinsics is None:
+            return img
+        src, k = self.file_intrinsics, self.intrinsics
+        if img.shape[:2] != (src.height, src.width):
+            raise BadRobotData(
+                f"{path}: {img.shape[1]}x{img.shape[0]}, the recording's first colour image "
+                f"is {src.width}x{src.height}"
+            )
+        return cv2.resize(img, (k.width, k.height), interpolation=interpolation)
+
+
+def working_intrinsics(native: Intrinsics) -> Intrinsics | None:
+    """The intrinsics at the working resolution for images of `native`'s size, or None
+    where they are read at their own size (`WORK_PIXELS`)."""
+    w, h = native.width, native.height
+    if w * h <= WORK_PIXELS:
+        return None
+    s = (WORK_PIXELS / (w * h)) ** 0.5
+    return native.resized(max(1, int(w * s)), max(1, int(h * s)))
 
 
 def read_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -154,7 +219,13 @@ def read_recording(
             f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
         )
     log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
-    return Recording(robot_id=robot_id, root=root, intrinsics=intrinsics, frames=frames)
+    h, w = load_rgb(frames[0].rgb_path).shape[:2]  # the size the images have, whatever
+    native = dataclasses.replace(intrinsics, width=w, height=h)  # camera.json says (or not)
+    work = working_intrinsics(native)
+    if work is None:
+        return Recording(robot_id=robot_id, root=root, intrinsics=native, frames=frames)
+    log.info("%s: %dx%d images read at %dx%d", robot_id, w, h, work.width, work.height)
+    return Recording(robot_id, root, work, frames, file_intrinsics=native)
 
 
 def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> list[FrameRecord]:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fleetmap.camera import Intrinsics, backproject_pixels
-from fleetmap.dataset import Recording, load_depth, load_rgb
+from fleetmap.dataset import Recording
 from fleetmap.errors import BadInput
 from fleetmap.feature_cache import FeatureCache, cached, salt_of
 from fleetmap.features import DEFAULT_PARAMS as FEATURE_DEFAULTS
@@ -115,8 +115,8 @@ def extract_recording(
     is in memory at a time)."""
     for i in keyframe_indices(rec, policy):
         rec_frame = rec.frames[i]
-        rgb = load_rgb(rec_frame.rgb_path)
-        depth = load_depth(rec_frame.depth_path) if rec_frame.depth_path else None
+        rgb = rec.rgb(rec_frame)
+        depth = rec.depth(rec_frame) if rec_frame.depth_path else None
         yield extractor(
             rec.robot_id, rec_frame.stamp, rgb, depth, rec.intrinsics, rec_frame.T_map_cam
         )

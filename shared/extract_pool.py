@@ -20,8 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleetmap.camera import Intrinsics
-from fleetmap.dataset import Recording, load_depth, load_rgb
+from fleetmap.dataset import ImageReader, Recording
 from fleetmap.frame import Frame
 from fleetmap.mapcloud import view_points
 from fleetmap.view import encode_view
@@ -56,7 +55,7 @@ class _Task:
     stamp: float
     rgb_path: Path
     depth_path: Path
-    intrinsics: Intrinsics
+    reader: ImageReader  # the recording's images at its working resolution
     T_map_cam: np.ndarray
     view: bool = False
 
@@ -81,11 +80,9 @@ def _init(vocab_path, worker: bool = True) -> None:
 
 
 def _extract(t: _Task) -> Keyframe:
-    rgb, depth = load_rgb(t.rgb_path), load_depth(t.depth_path)
-    frame = _extractor(t.robot_id, t.stamp, rgb, depth, t.intrinsics, t.T_map_cam)
-    points, colours = view_points(
-        rgb, depth, t.intrinsics, t.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M
-    )
+    rgb, depth, k = t.reader.rgb(t.rgb_path), t.reader.depth(t.depth_path), t.reader.intrinsics
+    frame = _extractor(t.robot_id, t.stamp, rgb, depth, k, t.T_map_cam)
+    points, colours = view_points(rgb, depth, k, t.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M)
     view = encode_view(rgb, depth) if t.view else None
     return Keyframe(t.robot_id, t.index, frame, points.astype(np.float32), colours, view)
 
@@ -104,7 +101,7 @@ def _tasks(
                 f.stamp,
                 f.rgb_path,
                 f.depth_path,
-                rec.intrinsics,
+                rec.reader,
                 f.T_map_cam,
                 views,
             )

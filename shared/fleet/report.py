@@ -5,8 +5,9 @@ and 6), so both write the same keys:
 - `reference`: the robot whose map frame is the global one (None: no robot placed yet);
 - `source`: where the map comes from: {"job": "merge"}, or {"job": "map", "place_db",
   "live_map_version"};
-- `robots`: per robot at least {"keyframes"}; merge adds "frames", "source" (its folder) and
-  "chain" (the robots its placement went through), map "views" and "state";
+- `robots`: per robot at least {"keyframes"}; merge adds "frames", "source" (its folder),
+  "chain" (the robots its placement went through), "image_size" (as read, at most
+  `dataset.WORK_PIXELS`) and "file_image_size", map "views" and "state";
 - `transforms`: T_ref_R per merged robot R (row-major 4x4: R's map frame into the
   reference's);
 - `overlaps`: verified keyframe pairs [{robot_a, stamp_a, robot_b, stamp_b, inliers,
@@ -88,6 +89,12 @@ def merge_report(recs, kf_index, placement: Placement, overlaps, fits: list[Fit]
             "frames": len(r),
             "source": str(r.root),
             "chain": placement.chain.get(r.robot_id),
+            # the images as read (`dataset.WORK_PIXELS`) and as the files hold them
+            "image_size": [r.intrinsics.width, r.intrinsics.height],
+            "file_image_size": [
+                (r.file_intrinsics or r.intrinsics).width,
+                (r.file_intrinsics or r.intrinsics).height,
+            ],
         }
         for r in recs
     }

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from fleetmap.correspondences import RGBDView
-from fleetmap.dataset import FrameRecord, Recording, load_depth, load_rgb
+from fleetmap.dataset import FrameRecord, Recording
 from fleetmap.errors import BadRobotData
 from fleetmap.fleet.types import DEFAULT_VIEWS, Fit
 
@@ -91,9 +91,7 @@ def load_view(rec: Recording, i: int) -> RGBDView:
     f = rec.frames[i]
     if f.depth_path is None or f.T_map_cam is None:
         raise BadRobotData(f"{rec.robot_id}: frame {f.stamp} has no depth or pose")
-    return RGBDView(
-        load_rgb(f.rgb_path), load_depth(f.depth_path), rec.intrinsics, f.T_map_cam, f.stamp
-    )
+    return RGBDView(rec.rgb(f), rec.depth(f), rec.intrinsics, f.T_map_cam, f.stamp)
 
 
 def path_lengths(positions: np.ndarray) -> np.ndarray:

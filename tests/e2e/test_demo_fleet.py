@@ -30,8 +30,13 @@ def demo(tmp_path_factory):
 def test_demo_merges_three_robots_near_the_truth(demo, capsys):
     out, report = demo
     assert report["unmerged"] == [] and report["reference"] == "alpha"
+    _near_truth(report, ROBOTS)
+    assert "align" not in capsys.readouterr().err  # -q: no progress bars
+
+
+def _near_truth(report: dict, robots) -> None:
     truth = json.loads((DEMO / "T_true.json").read_text())
-    for r in ROBOTS:
+    for r in robots:
         T, T_true = np.array(report["transforms"][r]), np.array(truth[r])
         cams = np.loadtxt(DEMO / r / "groundtruth.txt")[:, 1:4]
         err = np.linalg.norm(apply(T, cams) - apply(T_true, cams), axis=1).max()
@@ -39,7 +44,24 @@ def test_demo_merges_three_robots_near_the_truth(demo, capsys):
         # fr1 is not undistorted (k1 0.26: about 4 % radial shift half-way to the corner,
         # some 4 cm at the desk's 1 m) and each fit sees it in both robots' views
         assert err < 0.08 and dr < 5.0, (r, err, dr)
-    assert "align" not in capsys.readouterr().err  # -q: no progress bars
+
+
+def test_a_camera_of_four_times_the_pixels_is_merged_as_well(tmp_path):
+    """The demo's robots as a 1280x960 camera would record them: read at the working
+    resolution, merged near the truth. Read at full size, 2 x 12 such views exceeded the
+    aligner's pixel budget and the merge stopped."""
+    from tests.helpers import resized_recording
+
+    robots = ("alpha", "bravo")
+    dirs = [str(resized_recording(DEMO / r, tmp_path / r, 2.0)) for r in robots]
+    out = tmp_path / "out"
+    assert main(["-q", "merge", *dirs, "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["unmerged"] == []
+    for r in robots:
+        info = report["robots"][r]
+        assert info["file_image_size"] == [1280, 960] and info["image_size"] == [640, 480]
+    _near_truth(report, robots)
 
 
 def _messages(path: Path) -> list:

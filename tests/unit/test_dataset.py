@@ -1,9 +1,12 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from fleetmap.camera import TUM_FR1
 from fleetmap.dataset import associate, load_depth, parse_robot_arg, read_recording
 from fleetmap.errors import BadRobotData
+from tests.helpers import resized_recording
 
 
 def test_reads_sun3d_robot_with_camera_json(sun3d):
@@ -71,3 +74,40 @@ def test_unreadable_depth_image_is_named(tum_robot):
 def test_parse_robot_arg(tmp_path):
     assert parse_robot_arg(f"alpha={tmp_path}") == ("alpha", tmp_path)
     assert parse_robot_arg(str(tmp_path)) == (None, tmp_path)
+
+
+DEMO_ALPHA = Path(__file__).resolve().parents[2] / "examples" / "fr1_rpy_fleet" / "alpha"
+
+
+def test_a_camera_of_more_pixels_is_read_at_the_working_resolution(tmp_path):
+    """A 1088x816 copy of a 640x480 robot is read downscaled to at most WORK_PIXELS, its
+    intrinsics with it: the depth lands where the original's does; the images as they are
+    where they hold no more (the bundled demo robot, no data folder needed)."""
+    from scipy.spatial import cKDTree
+
+    from fleetmap.dataset import WORK_PIXELS, load_rgb
+    from fleetmap.mapcloud import view_points
+
+    big = read_recording(resized_recording(DEMO_ALPHA, tmp_path / "big", 1.7))
+    native = read_recording(DEMO_ALPHA)
+    assert native.file_intrinsics is None and native.intrinsics.width == 640
+    f0 = native.frames[0]
+    assert np.array_equal(native.rgb(f0), load_rgb(f0.rgb_path))
+    k = big.intrinsics
+    assert (big.file_intrinsics.width, big.file_intrinsics.height) == (1088, 816)
+    assert k.width * k.height <= WORK_PIXELS and abs(k.width / k.height - 4 / 3) < 0.01
+    f = big.frames[0]
+    rgb, depth = big.rgb(f), big.depth(f)
+    assert rgb.shape == (k.height, k.width, 3) and depth.shape == (k.height, k.width)
+    assert depth.dtype == np.uint16
+    p_big, _ = view_points(rgb, depth, k, np.eye(4), stride=2)
+    p_nat, _ = view_points(native.rgb(f0), native.depth(f0), native.intrinsics, np.eye(4), 2)
+    d, _ = cKDTree(p_nat).query(p_big)
+    assert np.median(d) < 0.005, np.median(d)  # within a pixel's footprint at the desk
+    # one image of another size in the recording: named, not silently stretched
+    odd = big.frames[3].rgb_path
+    import cv2
+
+    cv2.imwrite(str(odd), cv2.resize(cv2.imread(str(odd)), (640, 480)))
+    with pytest.raises(BadRobotData, match=odd.name):
+        big.rgb(big.frames[3])
