@@ -140,6 +140,17 @@ def _number(key: str, v) -> float | int:
 #: TUM RGB-D freiburg1 defaults, used where a robot folder has no camera.json.
 TUM_FR1 = Intrinsics()
 
+#: A depth value that means "no reading" besides 0: the 16-bit maximum, which some datasets
+#: (Microsoft 7-Scenes) write where the sensor saw nothing. Taken as a reading it is 65 m (13
+#: m at TUM's scale) of free space in front of every point the other map puts there.
+NO_READING_MAX = np.iinfo(np.uint16).max
+
+
+def no_reading_as_0(depth: np.ndarray) -> np.ndarray:
+    """A uint16 depth image with `NO_READING_MAX` set to 0 (in place; returned)."""
+    depth[depth == NO_READING_MAX] = 0
+    return depth
+
 
 def backproject_pixels(
     uv: np.ndarray,

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fleetmap.camera import TUM_FR1, Intrinsics
+from fleetmap.camera import TUM_FR1, Intrinsics, no_reading_as_0
 from fleetmap.errors import BadRobotData
 from fleetmap.geometry import pose_from_tum
 
@@ -264,7 +264,8 @@ def load_rgb(path: Path) -> np.ndarray:
 
 
 def load_depth(path: Path) -> np.ndarray:
-    """Depth image as uint16 (H, W); raises BadRobotData if missing, unreadable or not 16-bit."""
+    """Depth image as uint16 (H, W), 0 where there is no reading (`camera.no_reading_as_0`);
+    raises BadRobotData if missing, unreadable or not 16-bit."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise BadRobotData(f"Cannot read depth image {path}")
@@ -272,7 +273,7 @@ def load_depth(path: Path) -> np.ndarray:
         raise BadRobotData(
             f"Depth image {path} must be 16-bit single-channel, got {img.dtype} {img.shape}"
         )
-    return img
+    return no_reading_as_0(img)
 
 
 def parse_robot_arg(arg: str) -> tuple[str | None, Path]:

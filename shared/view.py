@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetmap.camera import no_reading_as_0
 from fleetmap.errors import BadInput, PayloadTooLarge
 
 JPEG_QUALITY = 95  # colour: SIFT on q95 JPEG finds the same features as on PNG, 1/5 the size
@@ -116,7 +117,7 @@ def decode_image(data: bytes, name: str, depth: bool) -> np.ndarray:
         raise BadInput(f"{name}: image does not decode")
     if depth and (img.dtype != np.uint16 or img.ndim != 2):
         raise BadInput(f"{name}: depth must be 16-bit single channel, got {img.dtype} {img.shape}")
-    return img
+    return no_reading_as_0(img) if depth else img
 
 
 def check_view(frame, parts: dict[str, bytes], max_pixels: int) -> tuple[bytes, bytes]:

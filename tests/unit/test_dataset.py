@@ -111,3 +111,14 @@ def test_a_camera_of_more_pixels_is_read_at_the_working_resolution(tmp_path):
     cv2.imwrite(str(odd), cv2.resize(cv2.imread(str(odd)), (640, 480)))
     with pytest.raises(BadRobotData, match=odd.name):
         big.rgb(big.frames[3])
+
+
+def test_the_16_bit_maximum_is_no_reading(tmp_path):
+    """7-Scenes writes 65535 where its Kinect saw nothing: read as 0, not as 65 m."""
+    import cv2
+
+    depth = np.full((4, 6), 1500, np.uint16)
+    depth[1, 2] = 65535
+    cv2.imwrite(str(tmp_path / "d.png"), depth)
+    out = load_depth(tmp_path / "d.png")
+    assert out[1, 2] == 0 and (out > 0).sum() == 23
