@@ -76,7 +76,8 @@ class LiveGraph:
         self._frames: dict[int, Frame | None] = {}  # keyframe id -> frame (None: no pose)
         self._judged: dict[tuple[int, int], Closure | None] = {}  # ids (a, b) -> closure
         self._refined: dict[tuple[int, int], Closure] = {}
-        self._linked: dict[tuple, tuple] = {}  # ids -> (ICP's start, its pose or None)
+        # ids -> (ICP's start, the depth closure it gave or None)
+        self._linked: dict[tuple, tuple] = {}
         self._solved: tuple | None = None
 
     def step(self, placement: Placement, states: dict) -> bool:
@@ -238,10 +239,11 @@ class LiveGraph:
                 if time.monotonic() > deadline:
                     return None
                 refined = self._icp(ids, c, icp)
-                start, done = c.T_a_b, refined.T_a_b if refined.source == "depth" else None
+                start, done = c.T_a_b, refined if refined.source == "depth" else None
                 self._linked[ids] = start, done
             if done is not None:
-                out.append(dataclasses.replace(c, T_a_b=done, source="depth"))
+                out.append(dataclasses.replace(c, T_a_b=done.T_a_b, source="depth",
+                                               surfaces=done.surfaces))  # fmt: skip
         return out
 
     def _present(self, index: dict) -> list[Closure]:

@@ -35,3 +35,52 @@ def test_short_paths_keep_the_rigid_placement_without_a_graph():
         assert np.allclose(c.T_ref_kf, T @ np.stack([k.frame.T_map_cam for k in kfs[r]]))
     # three metres of path can bend by more than the gate: the graph is built
     assert drift_bound(np.stack([k.frame.T_map_cam for k in _robot(3.0)]), p.graph) > p.min_bend_m
+
+
+def _cloud(points: np.ndarray, normals: np.ndarray | None = None):
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(normals)
+    return pc
+
+
+def test_a_depth_closure_pins_only_the_directions_its_surfaces_face():
+    """`surface_information` is the point-to-plane residual's Jacobian under T Exp(xi)
+    (GTSAM's BetweenFactor, b's frame): a wall 2 m ahead pins the translation across it
+    and the two turns that move it along the view, and leaves its slide and its turn
+    about its normal free; three walls of a room's corner pin all six; and the matrix is
+    J^T J for the residual that a small motion of the source really makes."""
+    from scipy.spatial.transform import Rotation
+
+    from fleetmap.fleet.closures import surface_information
+    from fleetmap.geometry import apply
+
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-1, 1, (2, 2000))
+    wall = np.stack([u, v, np.full_like(u, 2.0)], 1)  # camera b looks down z at a wall
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [3, -5, 10], degrees=True).as_matrix()
+    T[:3, 3] = [0.1, -0.2, 0.05]
+    n_a = np.tile(T[:3, :3] @ [0, 0, -1.0], (len(wall), 1))  # the wall seen from camera a
+    info = surface_information(_cloud(wall), _cloud(apply(T, wall), n_a), T, 0.02)
+    w, V = np.linalg.eigh(info)
+    assert (w > 0.1).sum() == 3  # translation along z, turns about x and y
+    assert np.allclose(info[[2, 3, 4]][:, [2, 3, 4]], 0, atol=1e-9)  # z turn, x/y slide
+    np.testing.assert_allclose(info[5, 5], 3.0, rtol=1e-6)
+    # the residual of a small motion xi: n . (T Exp(xi) p - T p) ~ J xi, J = [p x n_b, n_b]
+    xi = np.array([1e-4, -2e-4, 1.5e-4, 3e-4, -1e-4, 2e-4])
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    D[:3, 3] = xi[3:]
+    r = ((apply(T @ D, wall) - apply(T, wall)) * n_a).sum(1)
+    np.testing.assert_allclose((r**2).mean() * 3, xi @ info @ xi, rtol=1e-3)
+    # a room's corner: a wall, a side wall and the floor
+    side = np.stack([np.full_like(u, 1.0), u, 2 + v], 1)
+    floor = np.stack([u, np.full_like(u, 1.0), 2 + v], 1)
+    pts = np.concatenate([wall, side, floor])
+    faces = ([0, 0, -1], [-1, 0, 0], [0, -1, 0])
+    normals = np.concatenate([np.tile(n, (len(u), 1)) for n in faces])
+    info = surface_information(_cloud(pts), _cloud(pts, normals), np.eye(4), 0.02)
+    assert np.linalg.eigvalsh(info).min() > 0.05
