@@ -76,8 +76,7 @@ def run_merge(
     out.mkdir(parents=True, exist_ok=True)
     timing, t_all = dict.fromkeys(STAGES, 0.0), time.perf_counter()
     kf_index = {r.robot_id: keyframe_indices(r, params.keyframes) for r in recs}
-    voxel, max_views = params.voxel_m, params.views.max_views
-    ids = [r.robot_id for r in recs]
+    ids, voxel, max_views = [r.robot_id for r in recs], params.voxel_m, params.views.max_views
     with contextlib.ExitStack() as stack:
         keyframes = extract_keyframes(recs, kf_index, vocab_path, workers)  # runs meanwhile
         stack.callback(keyframes.close)
@@ -90,6 +89,7 @@ def run_merge(
         with timed(timing, "overlaps"):
             detected(db, sum(map(len, kf_index.values())), quiet)
             overlaps, by_pair = find_overlaps(db, ids)
+        found = searching_closures(parts, list(overlaps)) if params.correct_drift else None
         with timed(timing, "start"):
             al = stack.enter_context(AlignerClient(services.ready("aligner"), 900, token))
         with timed(timing, "align"):
@@ -101,7 +101,7 @@ def run_merge(
         with timed(timing, "links"):  # the keyframe graph's depth closures are at the links
             overlaps += link_overlaps(db, edges, fits, links)
         with timed(timing, "fleet_graph"):
-            fleet = correct_fleet(parts, placed, edges, overlaps, ids[0]) if drift else None
+            fleet = fleet_graph(parts, placed, edges, overlaps, ids[0], found) if drift else None
         with timed(timing, "outputs"):
             drawing = write_maps(out, recs, kf_index, clouds, placed, edges, params, fleet)
         in_force = merge_parameters(params, vocab_path, services_config(place_db=db, aligner=al))
@@ -116,6 +116,29 @@ def run_merge(
     report["timing_s"] = {k: round(v, 3) for k, v in timing.items()}
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+def searching_closures(parts: dict[str, list], overlaps: list[dict]):
+    """The fleet graph's feature closures searched in a background thread while the robots
+    are aligned (they need the keyframes and the verified overlaps, not the fits): a
+    future of `feature_closures`, or None where no robot's path can bend (no graph)."""
+    from fleetmap.fleet.correct import CorrectionParams, feature_closures, unbendable
+
+    params = CorrectionParams()
+    poses = {r: np.stack([k.frame.T_map_cam for k in kfs]) for r, kfs in parts.items() if kfs}
+    if unbendable(poses, params):
+        return None
+    pool = ThreadPoolExecutor(1, thread_name_prefix="closures")
+    future = pool.submit(feature_closures, parts, overlaps, params)
+    pool.shutdown(wait=False)
+    return future
+
+
+def fleet_graph(parts, placed, edges, overlaps, reference: str, search):
+    """`correct_fleet`, with the feature closures `search` found meanwhile (a future of
+    `searching_closures`, or None: searched now)."""
+    found = search.result() if search is not None else None
+    return correct_fleet(parts, placed, edges, overlaps, reference, found=found)
 
 
 class _Voxelised:

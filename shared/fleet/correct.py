@@ -277,11 +277,14 @@ def correct_fleet(
     reference: str,
     params: CorrectionParams = CorrectionParams(),
     closures: list[Closure] | None = None,
+    found: tuple | None = None,
 ) -> FleetCorrection:
     """Drift-corrected placement of every placed robot. keyframes[R]: robot R's extracted
     keyframes in time order (`fleetmap.extract_pool.Keyframe`: frame structure with the
     camera-to-map pose and features with 3D points, map-cloud points); `closures`: the
-    fleet's closures when already found (`fleet_closures`).
+    fleet's closures when already found (`fleet_closures`); `found`: `feature_closures` of
+    these keyframes and overlaps when already searched (`fleetmap merge` searches them
+    while it aligns).
 
     Without `closures`: where no robot's path is long enough for the drift model
     (`drift_bound`: yaw per metre and scale, as the odometry edges) to bend it by
@@ -312,7 +315,9 @@ def correct_fleet(
         return solve(closures)
     if why := unbendable(poses, params):
         return rigid_fleet(keyframes, placed, params, why)
-    found, pairs = feature_closures(keyframes, overlaps, params)
+    found, pairs = feature_closures(keyframes, overlaps, params) if found is None else found
+    found = [c for c in found if c.robot_a in keyframes and c.robot_b in keyframes]
+    pairs = {q for q in pairs if q[0] in keyframes and q[2] in keyframes}
     quick = solve(with_fit_closures(found, pairs, poses, edges))
     if not bends(quick, params):
         return quick
