@@ -178,7 +178,7 @@ def timing_2000(n_robots: int = 4, per_robot: int = 500, seed: int = 0) -> tuple
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA)
-    ap.add_argument("--cases", nargs="*", default=["hololens", "hololens3", "sun3d", "rpy"])
+    ap.add_argument("--cases", nargs="*", default=["hololens", "hololens3", "hololens_short", "sun3d", "rpy"])
     ap.add_argument("--rates", nargs="*", type=float, default=[0, 0.25, 0.5, 1])
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--recipe", action="store_true")
