@@ -41,6 +41,7 @@ from fleetmap.fleet.drift import write_drifted  # noqa: E402
 from fleetmap.registration import kabsch  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
+CASES = ("hololens", "hololens3", "hololens_short", "sun3d", "rpy")  # `cases`' names
 
 
 def cases(data: Path) -> dict:
@@ -178,7 +179,7 @@ def timing_2000(n_robots: int = 4, per_robot: int = 500, seed: int = 0) -> tuple
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA)
-    ap.add_argument("--cases", nargs="*", default=["hololens", "hololens3", "hololens_short", "sun3d", "rpy"])
+    ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--rates", nargs="*", type=float, default=[0, 0.25, 0.5, 1])
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--recipe", action="store_true")
