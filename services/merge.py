@@ -25,7 +25,7 @@ from fleetmap.dataset import Recording
 from fleetmap.errors import BadVocabulary
 from fleetmap.extract import keyframe_indices
 from fleetmap.extract_pool import extract_keyframes
-from fleetmap.fleet.correct import correct_fleet
+from fleetmap.fleet.correct import closures_meanwhile, correct_fleet
 from fleetmap.fleet.placement import place_fleet
 from fleetmap.fleet.report import OVERLAP_KEYS, merge_parameters, merge_report
 from fleetmap.fleet.types import DEFAULT_MERGE, Fit, MergeParams
@@ -89,7 +89,7 @@ def run_merge(
         with timed(timing, "overlaps"):
             detected(db, sum(map(len, kf_index.values())), quiet)
             overlaps, by_pair = find_overlaps(db, ids)
-        found = searching_closures(parts, list(overlaps)) if params.correct_drift else None
+        found = closures_meanwhile(parts, list(overlaps)) if params.correct_drift else None
         with timed(timing, "start"):
             al = stack.enter_context(AlignerClient(services.ready("aligner"), 900, token))
         with timed(timing, "align"):
@@ -118,25 +118,9 @@ def run_merge(
     return report
 
 
-def searching_closures(parts: dict[str, list], overlaps: list[dict]):
-    """The fleet graph's feature closures searched in a background thread while the robots
-    are aligned (they need the keyframes and the verified overlaps, not the fits): a
-    future of `feature_closures`, or None where no robot's path can bend (no graph)."""
-    from fleetmap.fleet.correct import CorrectionParams, feature_closures, unbendable
-
-    params = CorrectionParams()
-    poses = {r: np.stack([k.frame.T_map_cam for k in kfs]) for r, kfs in parts.items() if kfs}
-    if unbendable(poses, params):
-        return None
-    pool = ThreadPoolExecutor(1, thread_name_prefix="closures")
-    future = pool.submit(feature_closures, parts, overlaps, params)
-    pool.shutdown(wait=False)
-    return future
-
-
 def fleet_graph(parts, placed, edges, overlaps, reference: str, search):
     """`correct_fleet`, with the feature closures `search` found meanwhile (a future of
-    `searching_closures`, or None: searched now)."""
+    `closures_meanwhile`, or None: searched now)."""
     found = search.result() if search is not None else None
     return correct_fleet(parts, placed, edges, overlaps, reference, found=found)
 

@@ -183,6 +183,20 @@ def feature_closures(keyframes: dict, overlaps: list[dict], params: CorrectionPa
         return find_closures(frames, pairs, params.closure), pairs
 
 
+def closures_meanwhile(keyframes: dict, overlaps: list[dict], params=CorrectionParams()):
+    """`feature_closures` searched in a background thread (they need the keyframes and the
+    verified overlaps, not the robots' fits: `fleetmap merge` aligns meanwhile): a future,
+    or None where no robot's path can bend (`unbendable`: no graph is built)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    if unbendable(_poses({r: kfs for r, kfs in keyframes.items() if kfs}), params):
+        return None
+    pool = ThreadPoolExecutor(1, thread_name_prefix="closures")
+    future = pool.submit(feature_closures, keyframes, overlaps, params)
+    pool.shutdown(wait=False)
+    return future
+
+
 def _poses(keyframes: dict) -> dict[str, np.ndarray]:
     return {r: np.stack([k.frame.T_map_cam for k in kfs]) for r, kfs in keyframes.items()}
 
@@ -283,8 +297,7 @@ def correct_fleet(
     keyframes in time order (`fleetmap.extract_pool.Keyframe`: frame structure with the
     camera-to-map pose and features with 3D points, map-cloud points); `closures`: the
     fleet's closures when already found (`fleet_closures`); `found`: `feature_closures` of
-    these keyframes and overlaps when already searched (`fleetmap merge` searches them
-    while it aligns).
+    these keyframes and overlaps when already searched (`closures_meanwhile`).
 
     Without `closures`: where no robot's path is long enough for the drift model
     (`drift_bound`: yaw per metre and scale, as the odometry edges) to bend it by
