@@ -50,11 +50,14 @@ class Services:
 
 def _app(kind: str, data_dir: Path | None):
     if kind == "place-db":
+        from fleetmap.extract_pool import default_workers
         from fleetmap.services.place_db.config import Settings
         from fleetmap.services.place_db.main import create_app
 
-        # the job asks for overlaps once every keyframe is in (`defer_overlaps`)
-        settings = Settings(data_dir=data_dir, defer_overlaps=True) if data_dir else Settings()
+        # the job asks for overlaps once every keyframe is in (`defer_overlaps`), then
+        # detects them on every core (`OverlapWorker`)
+        batch = {"defer_overlaps": True, "overlap_threads": min(default_workers(), 64)}
+        settings = Settings(data_dir=data_dir, **batch) if data_dir else Settings()
         return create_app(settings, announce=False)
     from fleetmap.services.aligner.main import create_app as create_aligner
 

@@ -213,7 +213,7 @@ def detected(db, total: int, quiet: bool, timeout_s: float = 600.0) -> None:
     end = time.monotonic() + timeout_s
     while (pending := db.stats()["pending"]) and time.monotonic() < end:
         bar.update(max(total - pending, 0) - bar.n)
-        time.sleep(0.2)
+        time.sleep(0.05)
     bar.update(total - bar.n)
     bar.close()
 

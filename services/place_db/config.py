@@ -60,6 +60,9 @@ class Settings(BaseSettings):
     # before it is compared with all the others: overlaps that do not follow the order the
     # keyframes arrived in (the batch merge's embedded database; not for a live fleet)
     defer_overlaps: bool = False
+    # threads detecting overlaps: one for a live fleet (keyframes arrive one by one); the
+    # batch merge's deferred detection uses one per core (`OverlapWorker`)
+    overlap_threads: int = Field(1, ge=1, le=64)
 
     def __init__(self, **values):
         refuse_flat_names("FLEETMAP_PLACE_DB_", CascadeParams, "CASCADE")

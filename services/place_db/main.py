@@ -72,6 +72,7 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
             RetrainPolicy(enabled=settings.auto_retrain),
             background=settings.background_overlaps,
             defer_detection=settings.defer_overlaps,
+            detect_threads=settings.overlap_threads,
         )
         where = app.state.db.stats()["db_path"]
         log.info("place database at %s, vocabulary %s", where, vocab.vocab_id)

@@ -58,6 +58,7 @@ class PlaceDB(FleetAccess):
         retrain: RetrainPolicy | None = None,
         background: bool = True,
         defer_detection: bool = False,
+        detect_threads: int = 1,
     ):
         if isinstance(store, str | Path):
             store = open_store(store, vocabulary.vocab_id)
@@ -76,7 +77,7 @@ class PlaceDB(FleetAccess):
         if self.shared:
             self.worker = ClaimWorker(store, self._claimed)
         else:
-            self.worker = OverlapWorker(self.process)
+            self.worker = OverlapWorker(self.process, detect_threads)
         self._links = LinkOverlaps(store, self.load_frame)
         self.upkeep = CodebookUpkeep(self.retrain_policy, self.index, store, self.follower)
         self._load()

@@ -15,20 +15,28 @@ log = logging.getLogger(__name__)
 
 
 class OverlapWorker:
-    """A queue of keyframe ids and the thread (optional) that processes them."""
+    """A queue of keyframe ids and the threads (optional) that process them: one for a live
+    fleet, where keyframes arrive one by one; more where a whole batch is queued at once
+    (`PlaceDB`'s `defer_detection`), whose detections are independent of each other and
+    spend most of their time in OpenCV's MAGSAC, which runs without the interpreter lock."""
 
-    def __init__(self, process: Callable[[int], object]):
+    def __init__(self, process: Callable[[int], object], threads: int = 1):
         self._process = process
+        self._n = max(1, int(threads))
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._stopping = False
         self.failures = 0  # keyframes whose overlap detection raised
         self.parked: dict[int, str] = {}  # keyframe -> reason, the last 100
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
 
     def start(self) -> None:
-        """Process queued keyframes in a background thread from now on."""
-        self._thread = threading.Thread(target=self._run, name="overlap-worker", daemon=True)
-        self._thread.start()
+        """Process queued keyframes in background threads from now on."""
+        self._threads = [
+            threading.Thread(target=self._run, name=f"overlap-worker-{k}", daemon=True)
+            for k in range(self._n)
+        ]
+        for t in self._threads:
+            t.start()
 
     def put(self, kf_id: int) -> None:
         self._queue.put(kf_id)
@@ -80,8 +88,11 @@ class OverlapWorker:
             self._one(kf)
 
     def stop(self, timeout: float) -> None:
-        """Let the thread finish the keyframe it is on, at most `timeout` seconds."""
-        if self._thread is not None:
+        """Let the threads finish the keyframes they are on, at most `timeout` seconds."""
+        if self._threads:
             self._stopping = True
-            self._queue.put(None)
-            self._thread.join(timeout=timeout)
+            end = time.monotonic() + timeout
+            for _ in self._threads:
+                self._queue.put(None)
+            for t in self._threads:
+                t.join(timeout=max(0.0, end - time.monotonic()))

@@ -172,10 +172,12 @@ def test_deferred_overlaps_do_not_follow_the_order_of_arrival(sun3d_frames, tmp_
     overlaps request, then every keyframe is compared with all the others, so robot_a's
     keyframes first or robot_b's first give the same pairs. Detected as they arrive, the
     first robot's keyframes would find nothing and the second's their best among the
-    first's: other pairs."""
+    first's: other pairs. The second run detects on two threads (the batch merge's
+    `overlap_threads`): the same pairs too."""
     found = []
     for k, order in enumerate((("robot_a", "robot_b"), ("robot_b", "robot_a"))):
-        st = Settings(data_dir=tmp_path / str(k), max_body_bytes=200_000, defer_overlaps=True)
+        batch = {"defer_overlaps": True, "overlap_threads": k + 1}
+        st = Settings(data_dir=tmp_path / str(k), max_body_bytes=200_000, **batch)
         with TestClient(create_app(st)) as c:
             for robot in order:
                 for d in sun3d_frames[robot]:
