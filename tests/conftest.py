@@ -71,6 +71,11 @@ def hololens() -> Path:
 
 
 @pytest.fixture(scope="session")
+def tum_rpy() -> Path:
+    return data_path("tum_fr1_rpy")
+
+
+@pytest.fixture(scope="session")
 def corridor() -> Path:
     return data_path("rtabmap_corridor")
 

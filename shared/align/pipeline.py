@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from fleetmap.align.geometric_look import geometric_look
+from fleetmap.align.geometric_look import geometric_look, grey_correlation
 from fleetmap.align.hypotheses import (
     choose,
     pair_hypotheses,
@@ -56,6 +56,7 @@ def align_views(
     if not pairs:
         raise BadInput("Give at least one RGB-D pair")
     depth = scene_depth(pairs)
+    p = p.at_depth(depth)  # a nearer scene: every length in proportion
     C, R = verified_and_raw(pairs, pair_features(pairs))
     pair = _PairClouds(pairs)  # both looks see the same views: their clouds made once
     res = _align(C, R, pair, p, depth)
@@ -164,6 +165,8 @@ def _align(
     ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
     if not out.reason and pinned and probe is not None:
         out.reason = _unpinned(out.T_a_b, R, probe, p)
+    if not out.reason and p.use_icp:
+        out.reason = _colour_gate(best, clouds, p)
     if out.reason:
         return out
     if p.try_mlp and out.inliers >= 30:
@@ -223,6 +226,32 @@ def _geometry_gate(best, rivals, p: AlignParams, probe: np.ndarray, decisive: bo
     return ""
 
 
+def _colour_gate(best, clouds, p: AlignParams) -> str:
+    """Why the grey levels refuse a merge whose free space does not confirm it firmly, or "".
+
+    Under `decisive_consistency` firm, the points where the two maps meet must carry
+    grey levels that correlate (Pearson, at the fine voxel) at least
+    `min_colour_correlation`. Two different places, the HoloLens lounge and the TUM desk
+    both at 0.4 of their size, passed the free-space gate at 0.70 (firm 0.80) with 19
+    matches: their grey levels correlate 0.14. A right fit of two HoloLens maps bent by
+    1 deg/m of drift has the same free space (0.76, firm 0.81) and 0.46 (0.66 at the
+    local truth: a rigid fit of bent maps is off elsewhere); right merges of the kept
+    windows at 0.4-2.5 times their scale 0.58-0.94. Colour alone decides nothing: a wrong
+    basin of that drifted pair scored 0.58, the first look's winners on pairs of
+    different recordings -0.33 to 0.51 (docs/ALIGNER.md)."""
+    if best.firm_consistency >= p.decisive_consistency:
+        return ""
+    v, need = p.voxel_m, p.min_colour_correlation
+    r, n = grey_correlation(clouds[0].at(v), clouds[1].at(v, normals=False), best.T_a_b, v)
+    if r >= need:  # NaN (under 30 points meet) is not
+        return ""
+    return (
+        f"grey-level correlation {r:.2f} over {n} meeting points (need {need} where the "
+        f"firm free-space consistency, {best.firm_consistency:.2f}, is under "
+        f"{p.decisive_consistency}): the surfaces that meet do not look alike"
+    )
+
+
 def _unpinned(T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams) -> str:
     """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
     alignment nearby), or ""."""
@@ -232,7 +261,7 @@ def _unpinned(T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignPara
     T_near, n, n_T = found
     return (
         f"the matches agree better with an alignment {displacement_rms(T_near, T, probe):.2f} m "
-        f"away ({n} against {n_T} within {p.ransac_tol_m} m): the maps' geometry alone "
+        f"away ({n} against {n_T} within {p.ransac_tol_m:.2f} m): the maps' geometry alone "
         "led here (surfaces that slide along each other?)"
     )
 
@@ -253,7 +282,7 @@ def _match_gate(
         return f"inliers spread {sp:.2f} m (need {need_spread:.2f} at this depth)"
     out.holdout_m = holdout_residual(R.X[inl], R.Y[inl])
     if not out.holdout_m <= p.max_holdout_m:
-        return f"held-out residual {out.holdout_m:.3f} m (max {p.max_holdout_m})"
+        return f"held-out residual {out.holdout_m:.3f} m (max {p.max_holdout_m:.3f})"
     return ""
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -88,6 +88,10 @@ class AlignParams:
     try_mlp: bool = True
     min_spread_rel: float = 0.075  # or this share of the views' median depth, if less
     decisive_consistency: float = 0.95  # firm free-space consistency: geometry that decides
+    # under `decisive_consistency` firm, the grey levels where the maps meet must correlate
+    # this much (Pearson): surfaces that do not look alike at all are not one place
+    # (pipeline._colour_gate; right merges 0.46-0.94, maps that bend the lowest)
+    min_colour_correlation: float = 0.3
     # refused pairs looked at again with ASIFT (second_look.py); its merges must be pinned
     # by the matches (pipeline._unpinned: without, SUN3D windows merged 11-15 cm off)
     second_look: bool = True
@@ -96,6 +100,35 @@ class AlignParams:
     # (geometric_look.py)
     geometric_look: bool = True
     geometric: GeometricLook = GeometricLook()
+    # the nearest scene (median depth of the views, metres) the lengths above were set and
+    # measured on: the TUM desk, 0.9-1.1 m; a nearer scene has them shrunk (`at_depth`)
+    reference_depth_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.reference_depth_m > 0:
+            raise ValueError("reference_depth_m must be a positive depth in metres")
+
+    def at_depth(self, depth_m: float) -> AlignParams:
+        """These parameters for views whose median depth is `depth_m`: nearer than
+        `reference_depth_m`, every length (the RANSAC tolerance, the held-out residual, the
+        spread, the voxels and with them every ICP distance and free-space margin, the
+        distances that make hypotheses one or rivals) x depth / reference, the counts,
+        shares and angles as they are; at the reference or farther, unchanged.
+
+        A camera nearer its scene frames less of it and measures it finer (the features'
+        sideways error grows as depth, the depth noise as its square), so a length set for a
+        room is a share of a desk that would not be one of a room. The TUM desk seen from 0.4
+        m (the recording with its depths and poses x 0.4, an exact copy of the scene at 0.4
+        of the size): the coarse ICP at 8 cm voxels with 32 cm reach slid the best
+        hypothesis 45 cm / 40 deg from the truth, and the gate refused (free-space
+        consistency 0.55) a pair it merges from 1 m at 2.6 cm. Farther scenes keep the
+        lengths: sensors' noise grows faster than depth there (docs/ALIGNER.md)."""
+        k = depth_m / self.reference_depth_m
+        if not 0 < k < 1:
+            return self
+        lengths = ("ransac_tol_m", "min_spread_m", "max_holdout_m", "dedupe_m", "voxel_m")
+        lengths += ("coarse_voxel_m", "rival_m")
+        return replace(self, **{name: k * getattr(self, name) for name in lengths})
 
     def spread_needed(self, depth_m: float) -> float:
         """The inliers' spread (metres) the gate needs for views whose median depth is

@@ -173,3 +173,21 @@ def test_third_looks_at_once_find_what_each_finds_alone(tum_two_robots):
         assert [n for _, n in found] == [n for _, n in alone]
         for (T, _), (T0, _) in zip(found, alone, strict=True):
             assert np.allclose(T, T0, atol=1e-9)
+
+
+def test_a_nearer_scene_shrinks_every_length_and_nothing_else():
+    """`AlignParams.at_depth`: below the reference depth every length shrinks in proportion
+    (the voxels, and with them every ICP distance and free-space margin); counts, shares
+    and angles stay; at or beyond the reference nothing changes; a reference that is not a
+    depth is refused."""
+    p = AlignParams()
+    near = p.at_depth(0.4 * p.reference_depth_m)
+    for name in ("ransac_tol_m", "max_holdout_m", "voxel_m", "coarse_voxel_m", "rival_m"):
+        assert getattr(near, name) == pytest.approx(0.4 * getattr(p, name)), name
+    assert near.dedupe_m == pytest.approx(0.4 * p.dedupe_m)
+    assert near.spread_needed(0.4) == pytest.approx(p.spread_needed(0.4))  # already relative
+    same = ("min_inliers", "min_consistency", "min_overlap", "rival_deg", "geometric")
+    assert all(getattr(near, n) == getattr(p, n) for n in same)
+    assert p.at_depth(p.reference_depth_m) == p and p.at_depth(3.0) == p
+    with pytest.raises(ValueError, match="reference_depth_m"):
+        AlignParams(reference_depth_m=0.0)
