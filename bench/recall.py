@@ -2,7 +2,7 @@
 beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
-        [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR]
+        [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR] [--scale 0.4]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
 hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
@@ -17,6 +17,12 @@ Per pair: merged or not, the mean displacement of B's map points against the tru
 merged map shows), the end-to-end wall time of `fleetmap merge` (a subprocess, start-up
 included); the recipe (every 10th frame fused at 5 cm, FPFH + RANSAC + point-to-plane ICP,
 Open3D) with `--seeds` seeds and its time. A merge is right within 5 cm, wrong beyond 10 cm.
+
+`--scale s`: every robot's scene as if s times its size, seen from s times as near
+(`cut_recording`'s scale: depths and poses x s, the images as they are): a desk or a
+workbench (s < 1) from the same data, with its truth. Errors are divided by s (at the
+recording's size), so the bins and verdicts mean what they mean at s = 1; the recipe runs
+as its users would, with its fixed 5 cm voxel.
 """
 
 from __future__ import annotations
@@ -133,15 +139,18 @@ def cross_pairs(specs: dict, rng) -> list[dict]:
     return out
 
 
-def run_pair(k: int, pair: dict, specs: dict, work: Path, seeds: int, rng) -> dict:
-    """fleetmap merge on the pair's two windows, the recipe beside it."""
+def run_pair(
+    k: int, pair: dict, specs: dict, work: Path, seeds: int, rng, scale: float = 1.0
+) -> dict:
+    """fleetmap merge on the pair's two windows (their scene x `scale`), the recipe beside
+    it; errors at the recording's size."""
     T_common = {}
     for spec in specs.values():
         T_common |= {str(f): T for f, T in spec["segments"]}
     dirs, M = [], {}
     for r, (_, folder, sl) in (("A", pair["a"]), ("B", pair["b"])):
         M[r] = random_frame(rng)  # robot map <- folder's map
-        cut_recording(folder, sl, work / f"p{k}" / r, M[r])
+        cut_recording(folder, sl, work / f"p{k}" / r, M[r], scale=scale)
         dirs.append(f"{r}={work / f'p{k}' / r}")
     out = work / f"p{k}-out"
     t = time.perf_counter()
@@ -163,16 +172,17 @@ def run_pair(k: int, pair: dict, specs: dict, work: Path, seeds: int, rng) -> di
         row["reason"] = "no verified keyframe pair"
     row["overlaps"] = len([o for o in report["overlaps"] if o.get("source") != "link"])
     row["fits"] = [{k2: f.get(k2) for k2 in ("merged", "reason", "method")} for f in report["fits"]]
-    pb = np.asarray(
-        views_cloud(every_nth_views(work / f"p{k}" / "B", 5), voxel=0.05, with_color=False).points
-    )
+    views_b = every_nth_views(work / f"p{k}" / "B", 5)
+    pb = np.asarray(views_cloud(views_b, voxel=0.05 * scale, with_color=False).points)
     T_true = None
     if pair["bin"] != "none":
         fa, fb = str(pair["a"][1]), str(pair["b"][1])
         # A's map <- common <- B's map
         T_true = M["A"] @ np.linalg.inv(T_common[fa]) @ T_common[fb] @ np.linalg.inv(M["B"])
+        T_true[:3, 3] *= scale
+    cm = 100 / scale  # metres at this scale -> centimetres at the recording's size
     if T is not None:
-        row["error_cm"] = 100 * _mean_disp(np.array(T), T_true, pb) if T_true is not None else None
+        row["error_cm"] = cm * _mean_disp(np.array(T), T_true, pb) if T_true is not None else None
     row["recipe"] = []
     if T_true is not None:
         va = every_nth_views(work / f"p{k}" / "A")
@@ -180,7 +190,7 @@ def run_pair(k: int, pair: dict, specs: dict, work: Path, seeds: int, rng) -> di
         for seed in range(seeds):
             t = time.perf_counter()
             Tr, _ = fpfh_ransac_icp(va, vb, seed=seed)
-            row["recipe"].append((100 * _mean_disp(Tr, T_true, pb), time.perf_counter() - t))
+            row["recipe"].append((cm * _mean_disp(Tr, T_true, pb), time.perf_counter() - t))
     return row
 
 
@@ -234,6 +244,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write every row here")
     ap.add_argument("--table", type=Path, help="only print the table of rows written earlier")
     ap.add_argument(
+        "--scale", type=float, default=1.0, help="every scene x this (0.4: a desk from 0.4 m)"
+    )
+    ap.add_argument(
         "--keep", type=Path, help="keep every pair's windows and merge output here (to inspect)"
     )
     args = ap.parse_args()
@@ -257,7 +270,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="fleetmap-recall-") as tmp:
         work = args.keep or Path(tmp)
         for k, pair in enumerate(pairs):
-            row = run_pair(k, pair, specs, work, args.seeds, rng)
+            row = run_pair(k, pair, specs, work, args.seeds, rng, args.scale)
             rows.append(row)
             err = f"{row['error_cm']:.1f} cm" if row.get("error_cm") is not None else "-"
             rec = ", ".join(f"{e:.1f}" for e, _ in row["recipe"]) or "-"

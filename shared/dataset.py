@@ -285,20 +285,34 @@ def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
     return None, Path(arg)
 
 
-def cut_recording(src: Path, frames: slice, dst: Path, T_new_old: np.ndarray) -> Path:
+def cut_recording(
+    src: Path, frames: slice, dst: Path, T_new_old: np.ndarray, scale: float = 1.0
+) -> Path:
     """A robot folder at `dst` holding `src`'s frames[frames], their poses moved into
     another map frame (T_new_old maps src's map into the new one): a robot made from part
     of a recording, for benchmarks, tests and demos. Images are hard-linked where the file
-    system allows (the reader refuses symlinks leaving the folder), else copied."""
+    system allows (the reader refuses symlinks leaving the folder), else copied.
+
+    `scale`: the scene as if `scale` times its size, seen from `scale` times as near (the
+    depths, through camera.json's depth_scale, and the new map frame's lengths x scale; the
+    images as they are): how the pipeline meets a desk or a hall with the same data and its
+    truth (a transform between two such robots: its translation x scale)."""
+    import json
     import os
     import shutil
 
     from fleetmap.geometry import pose_to_tum
 
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, not {scale}")
     rec = read_recording(src)
     for sub in ("rgb", "depth"):
         (dst / sub).mkdir(parents=True)
-    if (src / "camera.json").exists():
+    if scale != 1.0:
+        cam = (rec.file_intrinsics or rec.intrinsics).to_dict()
+        cam["depth_scale"] /= scale
+        (dst / "camera.json").write_text(json.dumps(cam))
+    elif (src / "camera.json").exists():
         (dst / "camera.json").write_text((src / "camera.json").read_text())
     rows: dict[str, list[str]] = {"rgb": [], "depth": [], "groundtruth": []}
     for f in rec.frames[frames]:
@@ -308,7 +322,9 @@ def cut_recording(src: Path, frames: slice, dst: Path, T_new_old: np.ndarray) ->
             except OSError:
                 shutil.copyfile(path, dst / sub / path.name)
             rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
-        pose = " ".join(f"{x:.9f}" for x in pose_to_tum(T_new_old @ f.T_map_cam))
+        T = T_new_old @ f.T_map_cam
+        T[:3, 3] *= scale
+        pose = " ".join(f"{x:.9f}" for x in pose_to_tum(T))
         rows["groundtruth"].append(f"{f.stamp:.6f} {pose}")
     for name, lines in rows.items():
         (dst / f"{name}.txt").write_text("\n".join(lines) + "\n")

@@ -128,34 +128,3 @@ def resized_recording(src: Path, dst: Path, factor: float) -> Path:
             img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             cv2.imwrite(str(dst / sub / p.name), cv2.resize(img, (w, h), interpolation=how))
     return dst
-
-
-def scaled_scene(src: Path, dst: Path, s: float) -> Path:
-    """A copy of the recording `src` as if its scene were `s` times its size and the camera
-    `s` times as near: depths (camera.json's depth_scale / s) and the poses' translations
-    x s, the images themselves unchanged (hard links where possible)."""
-    import json
-    import os
-    import shutil
-
-    dst.mkdir(parents=True, exist_ok=True)
-    for name in ("rgb.txt", "depth.txt"):
-        shutil.copy(src / name, dst / name)
-    for sub in ("rgb", "depth"):
-        (dst / sub).mkdir(exist_ok=True)
-        for p in (src / sub).iterdir():
-            try:
-                os.link(p, dst / sub / p.name)
-            except OSError:
-                shutil.copyfile(p, dst / sub / p.name)
-    cam = json.loads((src / "camera.json").read_text())
-    cam["depth_scale"] /= s
-    (dst / "camera.json").write_text(json.dumps(cam))
-    rows = [r.split() for r in (src / "groundtruth.txt").read_text().splitlines()]
-    lines = [
-        " ".join([r[0], *(f"{float(x) * s:.9f}" for x in r[1:4]), *r[4:]])
-        for r in rows
-        if r and not r[0].startswith("#")
-    ]
-    (dst / "groundtruth.txt").write_text("\n".join(lines) + "\n")
-    return dst

@@ -142,19 +142,16 @@ def test_room_seen_across_its_planes_is_merged(hololens, tmp_path):
 
 def test_a_desk_seen_from_0_4_m_is_merged_as_from_1_m(tum_rpy, tmp_path):
     """TUM fr1_rpy windows [0:50] and [130:180] (27% of the desk shared), the scene at 0.4
-    of its size (depths and poses x 0.4, `scaled_scene`: the desk from 0.4 m, as a
+    of its size (depths and poses x 0.4, `cut_recording`'s scale: the desk from 0.4 m, as a
     RealSense at a workbench sees it) merge as near the truth, in proportion, as at full
     size. With the gate's lengths in metres set for rooms the coarse ICP (8 cm voxels, 32 cm
     reach) slid the best hypothesis off the desk: in these map frames refused ("free-space
     consistency 0.41"); over six pairs of frames 2 refused and 4 merged at 1.6-2.4 deg,
     against 6 merged at 0.3-0.7 cm / 0.4-1.5 deg now."""
-    from tests.helpers import scaled_scene
-
     M = {r: random_frame(s) for s, r in enumerate("AB", start=5)}
     dirs = {}
     for r, frames in (("A", slice(0, 50)), ("B", slice(130, 180))):
-        cut_recording(tum_rpy, frames, tmp_path / "full" / r, M[r])
-        dirs[r] = scaled_scene(tmp_path / "full" / r, tmp_path / r, 0.4)
+        dirs[r] = cut_recording(tum_rpy, frames, tmp_path / r, M[r], scale=0.4)
     out = tmp_path / "out"
     assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
@@ -168,16 +165,13 @@ def test_a_desk_seen_from_0_4_m_is_merged_as_from_1_m(tum_rpy, tmp_path):
 
 def test_two_places_at_desk_scale_stay_unmerged(hololens, tum_rpy, tmp_path):
     """The HoloLens lounge (hl_b[0:60]) and the TUM desk (fr1_rpy[180:230]), both at 0.4 of
-    their size (`scaled_scene`), share no place. The free-space gate alone merged them in
+    their size (`cut_recording`'s scale), share no place. The free-space gate alone merged them in
     these map frames (consistency 0.70, firm 0.83: a wrong merge, before and after the gate's
     lengths followed the scene); their grey levels where they meet correlate 0.08."""
-    from tests.helpers import scaled_scene
-
     M = {r: random_frame(s) for s, r in enumerate("AB", start=3)}
     dirs = {}
     for r, src, frames in (("A", hololens / "hl_b", slice(0, 60)), ("B", tum_rpy, slice(180, 230))):
-        cut_recording(src, frames, tmp_path / "full" / r, M[r])
-        dirs[r] = scaled_scene(tmp_path / "full" / r, tmp_path / r, 0.4)
+        dirs[r] = cut_recording(src, frames, tmp_path / r, M[r], scale=0.4)
     out = tmp_path / "out"
     assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())

@@ -122,3 +122,24 @@ def test_the_16_bit_maximum_is_no_reading(tmp_path):
     cv2.imwrite(str(tmp_path / "d.png"), depth)
     out = load_depth(tmp_path / "d.png")
     assert out[1, 2] == 0 and (out > 0).sum() == 23
+
+
+def test_a_recording_cut_at_another_scale_is_the_same_scene_nearer(tmp_path):
+    """`cut_recording(..., scale=0.4)`: the demo robot's frames 2-6 as the scene at 0.4 of
+    its size: every depth and every camera position x 0.4 (in the new map frame), the
+    rotations and the images as they were; a scale that is not positive is refused."""
+    from fleetmap.dataset import cut_recording
+
+    T = np.eye(4)
+    T[:3, 3] = [1.0, -2.0, 0.5]
+    full = read_recording(cut_recording(DEMO_ALPHA, slice(2, 6), tmp_path / "full", T))
+    near = read_recording(cut_recording(DEMO_ALPHA, slice(2, 6), tmp_path / "near", T, scale=0.4))
+    assert len(near) == len(full) == 4
+    for f, g in zip(full.frames, near.frames, strict=True):
+        d_full, d_near = (r.depth(x) / r.intrinsics.depth_scale for r, x in ((full, f), (near, g)))
+        np.testing.assert_allclose(d_near, 0.4 * d_full, rtol=1e-12)
+        np.testing.assert_allclose(g.T_map_cam[:3, 3], 0.4 * f.T_map_cam[:3, 3], atol=1e-8)
+        np.testing.assert_allclose(g.T_map_cam[:3, :3], f.T_map_cam[:3, :3], atol=1e-8)
+        assert (near.rgb(g) == full.rgb(f)).all()
+    with pytest.raises(ValueError, match="scale"):
+        cut_recording(DEMO_ALPHA, slice(0, 2), tmp_path / "bad", T, scale=0.0)
