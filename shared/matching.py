@@ -50,21 +50,45 @@ class Verification:
 
 
 def match_descriptors(
-    da: np.ndarray, db: np.ndarray, ratio: float
+    da: np.ndarray, db: np.ndarray, ratio: float, apart: tuple[np.ndarray, float] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ratio-test, mutually nearest matches between descriptor sets (Na, 128) and (Nb, 128).
 
+    `apart`: (b's keypoints (Nb, 2), r pixels): the ratio test's second nearest is the
+    nearest b at least r pixels from the nearest's keypoint (`distinct_second`).
     Returns index arrays (M,) into a and into b.
     """
-    return match_descriptors_at(da, db, (ratio,))[0]
+    return match_descriptors_at(da, db, (ratio,), apart)[0]
+
+
+def distinct_second(keypoints: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each keypoint, the keypoints within `radius_px` of it (itself included), as CSR
+    (indptr (N + 1,), indices): the ones a ratio test must not take for its second nearest.
+
+    Lowe's ratio test presumes that a point of the scene is described once, so that the
+    second nearest descriptor is another point. Affine-simulated SIFT describes one point
+    under several simulated tilts: on HoloLens views 71% of the features have their nearest
+    other descriptor at a keypoint within 3 px, and the ratio test then refuses the match
+    for being ambiguous with the same point (docs/ALIGNER.md, session 22)."""
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(keypoints).query_ball_point(keypoints, radius_px, return_sorted=False)
+    counts = np.fromiter(map(len, near), np.intp, len(near))
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    indices = np.concatenate([np.asarray(x, np.intp) for x in near]) if len(near) else counts
+    return indptr, indices
 
 
 def match_descriptors_at(
-    da: np.ndarray, db: np.ndarray, ratios: tuple[float, ...]
+    da: np.ndarray,
+    db: np.ndarray,
+    ratios: tuple[float, ...],
+    apart: tuple[np.ndarray, float] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """`match_descriptors` at several ratio thresholds from one distance computation."""
     if len(da) < 2 or len(db) < 2:
         return [(np.zeros(0, int), np.zeros(0, int)) for _ in ratios]
+    near = distinct_second(np.asarray(apart[0], np.float64), apart[1]) if apart else None
     fa, fb = da.astype(np.float32), db.astype(np.float32)
     na, nb = (fa * fa).sum(1), (fb * fb).sum(1)
     product = _products(da, db)
@@ -76,7 +100,7 @@ def match_descriptors_at(
     for k, lo in enumerate(range(0, len(fa), _BLOCK)):
         rows = slice(lo, lo + _BLOCK)
         S = product(rows) if product else fa[rows] @ fb.T
-        best[rows], s1[rows], s2[rows], mutual[rows], m = _block(S, na[rows], nb)
+        best[rows], s1[rows], s2[rows], mutual[rows], m = _block(S, na[rows], nb, near)
         up = m > top
         top[up], first[up] = m[up], k
     # a row is its best column's best row where that column's maximum is its value and was
@@ -141,11 +165,12 @@ def _torch():
     return torch if hasattr(torch, "_int_mm") else None
 
 
-def _block(S: np.ndarray, na: np.ndarray, nb: np.ndarray):
+def _block(S: np.ndarray, na: np.ndarray, nb: np.ndarray, near=None):
     """For a block of rows of a, given S = a.b^T: each row's nearest b (best), the two
-    smallest |b|^2 - 2 a.b, whether the row is the first in the block to reach its best
-    column's maximum (in the block), and each column's maximum of 2 a.b - |a|^2 in the
-    block."""
+    smallest |b|^2 - 2 a.b (the second among the columns not `near` the best's, where
+    given: `distinct_second`'s CSR), whether the row is the first in the block to reach its
+    best column's maximum (in the block), and each column's maximum of 2 a.b - |a|^2 in
+    the block."""
     # |a - b|^2 = na + nb - 2 a.b: a row's nearest b maximises 2 a.b - nb, a column's
     # nearest a maximises 2 a.b - na. One matrix product, then passes over it in place.
     S *= 2.0
@@ -153,13 +178,23 @@ def _block(S: np.ndarray, na: np.ndarray, nb: np.ndarray):
     rows = np.arange(len(S))
     best = S.argmax(1)
     s1 = S[rows, best].copy()
-    S[rows, best] = -np.inf
+    r, c = (rows, best) if near is None else _near_cells(rows, best, *near)
+    kept = S[r, c]
+    S[r, c] = -np.inf
     s2 = S.max(1)
-    S[rows, best] = s1
+    S[r, c] = kept
     S += nb[None, :]
     S -= na[:, None]
     top = S.max(0)
     return best, s1, s2, mutual_best(S, rows, best, top), top
+
+
+def _near_cells(rows, best, indptr, indices):
+    """(row, column) of every column near each row's best column (CSR `indptr`, `indices`)."""
+    start, count = indptr[best], indptr[best + 1] - indptr[best]
+    first = np.cumsum(count) - count  # where each row's run starts in the output
+    pos = np.arange(int(count.sum())) - np.repeat(first - start, count)
+    return np.repeat(rows, count), indices[pos]
 
 
 def mutual_best(

@@ -84,8 +84,9 @@ def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
 
     def match(ab: tuple[int, int]):
         a, b = fa[ab[0]].descriptors, fb[ab[1]].descriptors
-        key = (keys[ab[0]], keys[len(va) + ab[1]], s.ratio)
-        return _MATCHES.get(key, lambda: match_descriptors(a, b, s.ratio))
+        apart = (fb[ab[1]].keypoints, s.distinct_px) if s.distinct_px > 0 else None
+        key = (keys[ab[0]], keys[len(va) + ab[1]], s.ratio, s.distinct_px)
+        return _MATCHES.get(key, lambda: match_descriptors(a, b, s.ratio, apart))
 
     with ThreadPoolExecutor(2) as ex:  # numpy's product, sort and partition release the GIL
         found = list(ex.map(match, grid))

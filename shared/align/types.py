@@ -25,12 +25,20 @@ class SecondLook:
     # on a loaded machine); SUN3D's unpinned merges and the cross pairs stayed refused
     per_view: int = 320
     ratio: float = 0.85
+    # the ratio test's second nearest at least this many pixels from the nearest's keypoint
+    # (`fleetmap.matching.distinct_second`: ASIFT describes one point under several tilts).
+    # HoloLens window pairs walked the other way, matches within 8 cm of the truth over 6 x 6
+    # views: 1.5 px 40 / 11 / 12 / 9, 3 px 50 / 15 / 15 / 13, 6 px 55 / 16 / 17 / 13, plain
+    # ratio test (0) 31 / 7 / 10 / 3 (docs/ALIGNER.md, session 22)
+    distinct_px: float = 4.0
 
     def __post_init__(self) -> None:
         if self.views < 1 or self.max_tilt < 1 or self.per_view < 1:
             raise ValueError("the second look needs views >= 1, max_tilt >= 1, per_view >= 1")
         if not 0 < self.ratio <= 1:
             raise ValueError("the second look's ratio must lie in (0, 1]")
+        if not self.distinct_px >= 0:
+            raise ValueError("the second look's distinct_px must be 0 (off) or more")
 
 
 @dataclass(frozen=True)

@@ -67,3 +67,47 @@ def test_int8_products_give_the_whole_matrix_matching(monkeypatch):
         for ratio, (ia, ib) in zip((0.8, 1.0), found, strict=True):
             ja, jb = _matches_from_the_whole_matrix(da, db, ratio)
             assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
+
+
+def _distinct_from_the_whole_matrix(da, db, kb, radius, ratio):
+    """The definition: the second nearest is the nearest b whose keypoint lies at least
+    `radius` from the nearest's."""
+    D = ((da[:, None, :].astype(np.float64) - db[None, :, :]) ** 2).sum(2)
+    rows = np.arange(len(da))
+    best = D.argmin(1)
+    far = np.linalg.norm(kb[None, :, :] - kb[best][:, None, :], axis=2) >= radius
+    d2 = np.where(far, D, np.inf).min(1)
+    keep = (D[rows, best] < ratio**2 * d2) & (D.argmin(0)[best] == rows)
+    ia = np.flatnonzero(keep)
+    return ia, best[ia]
+
+
+@pytest.mark.parametrize("int8", [False, True])
+def test_the_second_nearest_is_another_point(monkeypatch, int8):
+    """`apart`: the ratio test's second nearest skips b's features within r pixels of the
+    nearest's keypoint (one point described under several tilts), on both product paths
+    and over several blocks; the same as the definition, and a match the plain ratio test
+    refuses for a near-duplicate is kept."""
+    if int8 and matching._torch() is None:
+        pytest.skip("torch is not installed (a robot's install): numpy's product is used")
+    monkeypatch.setattr(matching, "_BLOCK", 7)
+    monkeypatch.setattr(matching, "INT8_MIN_ENTRIES", 1 if int8 else 10**12)
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        n, m = rng.integers(2, 40, size=2)
+        da = rng.integers(0, 256, size=(n, 8)).astype(np.uint8)
+        db = rng.integers(0, 256, size=(m, 8)).astype(np.uint8)
+        kb = rng.uniform(0, 20, size=(m, 2))
+        # (0.83: no distance ratio lands on its square exactly, where float32 and float64
+        # may round the comparison apart)
+        ((ia, ib),) = match_descriptors_at(da, db, (0.83,), (kb, 4.0))
+        ja, jb = _distinct_from_the_whole_matrix(da, db, kb, 4.0, 0.83)
+        assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
+    # one point of b described twice (descriptors as near, keypoints 1 px apart), another
+    # point far: the plain test finds the duplicate second and refuses, apart keeps it
+    da = np.array([[100, 100, 100, 100], [250, 250, 250, 250]], np.uint8)
+    db = np.array([[100, 100, 100, 101], [100, 100, 100, 99], [0, 0, 0, 0]], np.uint8)
+    kb = np.array([[10.0, 10.0], [11.0, 10.0], [50.0, 50.0]])
+    assert len(match_descriptors_at(da, db, (0.8,))[0][0]) == 0
+    ((ia, ib),) = match_descriptors_at(da, db, (0.8,), (kb, 4.0))
+    assert ia.tolist() == [0] and ib.tolist() == [0]
