@@ -75,7 +75,7 @@ COST_S = {
     "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 26,
     "tests/e2e/test_demo_fleet.py": 26,
     "tests/e2e/test_recall.py::"
-    "test_room_seen_from_elsewhere_is_merged_on_its_geometry_and_colour": 22,
+    "test_room_seen_from_elsewhere_is_merged_on_the_copies_asift_makes": 22,
     f"{_PARTS}[part_a3-part_b3-False]": 21,
     "tests/process/test_cli.py": 17,
     "tests/e2e/test_merge.py::test_merge_hololens_robots_that_revisit_a_kitchen": 16,
