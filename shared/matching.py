@@ -50,15 +50,15 @@ class Verification:
 
 
 def match_descriptors(
-    da: np.ndarray, db: np.ndarray, ratio: float, apart: tuple[np.ndarray, float] | None = None
+    da: np.ndarray, db: np.ndarray, ratio: float, near: tuple[np.ndarray, np.ndarray] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ratio-test, mutually nearest matches between descriptor sets (Na, 128) and (Nb, 128).
 
-    `apart`: (b's keypoints (Nb, 2), r pixels): the ratio test's second nearest is the
-    nearest b at least r pixels from the nearest's keypoint (`distinct_second`).
+    `near`: `distinct_second` of b's keypoints: the ratio test's second nearest is the
+    nearest b not near the nearest's keypoint.
     Returns index arrays (M,) into a and into b.
     """
-    return match_descriptors_at(da, db, (ratio,), apart)[0]
+    return match_descriptors_at(da, db, (ratio,), near)[0]
 
 
 def distinct_second(keypoints: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +72,8 @@ def distinct_second(keypoints: np.ndarray, radius_px: float) -> tuple[np.ndarray
     for being ambiguous with the same point (docs/ALIGNER.md, session 22)."""
     from scipy.spatial import cKDTree
 
-    near = cKDTree(keypoints).query_ball_point(keypoints, radius_px, return_sorted=False)
+    xy = np.asarray(keypoints, np.float64)
+    near = cKDTree(xy).query_ball_point(xy, radius_px, return_sorted=False)
     counts = np.fromiter(map(len, near), np.intp, len(near))
     indptr = np.concatenate([[0], np.cumsum(counts)])
     indices = np.concatenate([np.asarray(x, np.intp) for x in near]) if len(near) else counts
@@ -83,12 +84,11 @@ def match_descriptors_at(
     da: np.ndarray,
     db: np.ndarray,
     ratios: tuple[float, ...],
-    apart: tuple[np.ndarray, float] | None = None,
+    near: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """`match_descriptors` at several ratio thresholds from one distance computation."""
     if len(da) < 2 or len(db) < 2:
         return [(np.zeros(0, int), np.zeros(0, int)) for _ in ratios]
-    near = distinct_second(np.asarray(apart[0], np.float64), apart[1]) if apart else None
     fa, fb = da.astype(np.float32), db.astype(np.float32)
     na, nb = (fa * fa).sum(1), (fb * fb).sum(1)
     product = _products(da, db)

@@ -23,7 +23,7 @@ from fleetmap.align.types import SecondLook, unique_views
 from fleetmap.correspondences import Correspondences, lift
 from fleetmap.feature_cache import cached_local, digest
 from fleetmap.features import SIFT_LAYERS, SIFT_SIGMA, LocalFeatures, affine_features
-from fleetmap.matching import match_descriptors
+from fleetmap.matching import distinct_second, match_descriptors
 
 
 def spread_views(views: list, n: int) -> list:
@@ -80,13 +80,14 @@ def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
     with ThreadPoolExecutor(2) as ex:  # OpenCV releases the GIL
         feats = list(ex.map(features, range(len(views))))
     fa, fb = feats[: len(va)], feats[len(va) :]
+    # each B view's keypoints near one another: once a view, not once a view pair
+    near = [distinct_second(f.keypoints, s.distinct_px) if s.distinct_px > 0 else None for f in fb]
     grid = [(a, b) for a in range(len(va)) for b in range(len(vb))]
 
     def match(ab: tuple[int, int]):
         a, b = fa[ab[0]].descriptors, fb[ab[1]].descriptors
-        apart = (fb[ab[1]].keypoints, s.distinct_px) if s.distinct_px > 0 else None
         key = (keys[ab[0]], keys[len(va) + ab[1]], s.ratio, s.distinct_px)
-        return _MATCHES.get(key, lambda: match_descriptors(a, b, s.ratio, apart))
+        return _MATCHES.get(key, lambda: match_descriptors(a, b, s.ratio, near[ab[1]]))
 
     with ThreadPoolExecutor(2) as ex:  # numpy's product, sort and partition release the GIL
         found = list(ex.map(match, grid))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fleetmap import matching
-from fleetmap.matching import match_descriptors_at, mutual_best
+from fleetmap.matching import distinct_second, match_descriptors_at, mutual_best
 
 
 def test_mutual_best_is_argmax_down_the_columns_with_ties():
@@ -84,10 +84,10 @@ def _distinct_from_the_whole_matrix(da, db, kb, radius, ratio):
 
 @pytest.mark.parametrize("int8", [False, True])
 def test_the_second_nearest_is_another_point(monkeypatch, int8):
-    """`apart`: the ratio test's second nearest skips b's features within r pixels of the
-    nearest's keypoint (one point described under several tilts), on both product paths
-    and over several blocks; the same as the definition, and a match the plain ratio test
-    refuses for a near-duplicate is kept."""
+    """`near` (`distinct_second`): the ratio test's second nearest skips b's features
+    within r pixels of the nearest's keypoint (one point described under several tilts),
+    on both product paths and over several blocks; the same as the definition, and a match
+    the plain ratio test refuses for a near-duplicate is kept."""
     if int8 and matching._torch() is None:
         pytest.skip("torch is not installed (a robot's install): numpy's product is used")
     monkeypatch.setattr(matching, "_BLOCK", 7)
@@ -100,16 +100,16 @@ def test_the_second_nearest_is_another_point(monkeypatch, int8):
         kb = rng.uniform(0, 20, size=(m, 2))
         # (0.83: no distance ratio lands on its square exactly, where float32 and float64
         # may round the comparison apart)
-        ((ia, ib),) = match_descriptors_at(da, db, (0.83,), (kb, 4.0))
+        ((ia, ib),) = match_descriptors_at(da, db, (0.83,), distinct_second(kb, 4.0))
         ja, jb = _distinct_from_the_whole_matrix(da, db, kb, 4.0, 0.83)
         assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
     # one point of b described twice (descriptors as near, keypoints 1 px apart), another
-    # point far: the plain test finds the duplicate second and refuses, apart keeps it
+    # point far: the plain test finds the duplicate second and refuses, `near` keeps it
     da = np.array([[100, 100, 100, 100], [250, 250, 250, 250]], np.uint8)
     db = np.array([[100, 100, 100, 101], [100, 100, 100, 99], [0, 0, 0, 0]], np.uint8)
     kb = np.array([[10.0, 10.0], [11.0, 10.0], [50.0, 50.0]])
     assert len(match_descriptors_at(da, db, (0.8,))[0][0]) == 0
-    ((ia, ib),) = match_descriptors_at(da, db, (0.8,), (kb, 4.0))
+    ((ia, ib),) = match_descriptors_at(da, db, (0.8,), distinct_second(kb, 4.0))
     assert ia.tolist() == [0] and ib.tolist() == [0]
 
 
