@@ -129,7 +129,8 @@ def _align(
     refinement already follows the matches (`hypotheses.ranked`) and where a robot's map
     that bends is fitted as a whole a few centimetres off where the matched views are
     (`agreeing`: HoloLens walk with 1 deg/m of drift, 65 matches agree with a fit 13 cm
-    away, 11 with the merge, which holds there within the test's 15 cm)."""
+    away, 11 with the merge, which holds there within the test's 15 cm); unless the
+    geometry carried it alone (`_carried`)."""
     if len(R) < p.min_inliers:
         return AlignResult(
             False, f"only {len(R)} correspondences with depth (need {p.min_inliers})"
@@ -163,7 +164,7 @@ def _align(
     out.reason = (
         _geometry_gate(best, rivals, p, probe, decisive) if p.use_icp else ""
     ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
-    if not out.reason and pinned and probe is not None:
+    if not out.reason and probe is not None and (pinned or _carried(decisive, out.T_a_b, R, p)):
         out.reason = _unpinned(out.T_a_b, R, probe, p)
     if not out.reason and p.use_icp:
         out.reason = _colour_gate(best, clouds, p)
@@ -249,6 +250,18 @@ def _colour_gate(best, clouds, p: AlignParams) -> str:
         f"grey-level correlation {r:.2f} over {n} meeting points (need {need} where the "
         f"firm free-space consistency, {best.firm_consistency:.2f}, is under "
         f"{p.decisive_consistency}): the surfaces that meet do not look alike"
+    )
+
+
+def _carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -> bool:
+    """Did the geometry carry a first-look merge on its own: decisive free space, and
+    fewer matches within the RANSAC tolerance of T itself than the gate asks of a merge the
+    geometry does not decide? Such a merge must be pinned (`_align`): surfaces that slide
+    along each other keep the free space consistent (SUN3D windows 27 cm off at firm 0.99,
+    7 matches at the merge, 24 at an alignment 24 cm away; the whole recordings, right at
+    firm 0.995, have 49 at theirs: docs/ALIGNER.md, session 23)."""
+    return decisive and int(np.count_nonzero(residuals(T, R.X, R.Y) < p.ransac_tol_m)) < (
+        p.min_inliers
     )
 
 
