@@ -251,6 +251,8 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.table:
+        if not args.table.is_file():
+            ap.error(f"--table {args.table}: no such file (the rows a run wrote with --json)")
         print(table(json.loads(args.table.read_text())))
         return
     rng = np.random.default_rng(args.seed)
