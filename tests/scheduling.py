@@ -81,7 +81,7 @@ COST_S = {
     "tests/e2e/test_merge.py::test_merge_hololens_robots_that_revisit_a_kitchen": 16,
     "tests/process/test_place_db_replicas.py": 16,
     "tests/e2e/test_recall.py::test_second_look_merges_only_what_its_matches_pin": 13,
-    "tests/e2e/test_recall.py::test_a_slide_along_the_rooms_planes_is_not_a_merge": 30,
+    "tests/e2e/test_recall.py::test_a_slide_along_the_rooms_planes_is_not_a_merge": 12,
     APART[1]: 13,
     f"{_PARTS}[part_a4-part_b4-True]": 11,
     "tests/process/test_chaos.py": 11,

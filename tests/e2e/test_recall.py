@@ -117,7 +117,7 @@ def test_second_look_merges_only_what_its_matches_pin(sun3d, tmp_path):
         assert fit["reason"], fit
 
 
-def test_a_slide_along_the_rooms_planes_is_not_a_merge(sun3d, tmp_path):
+def test_a_slide_along_the_rooms_planes_is_not_a_merge(sun3d, tmp_path, monkeypatch):
     """SUN3D robot_a frames 30-50 and robot_b 10-30 share 35% of their surfaces. The first
     look's best basin put B's cameras 27 cm from the truth (the whole recordings' own merge
     agrees with `T_a_b.txt` within 2 cm): ICP slid along the study room's floor and walls,
@@ -125,7 +125,11 @@ def test_a_slide_along_the_rooms_planes_is_not_a_merge(sun3d, tmp_path):
     the matches agreed better with an alignment 24 cm away (24 against 7). A merge the
     geometry carried alone, with fewer matches at it than a merge needs, must be pinned by
     them too (`pipeline._carried`, session 23). Merged within 5 cm of the truth, or
-    refused."""
+    refused. The wrong merge was the first look's: the later looks, which refuse this pair
+    too (ASIFT's basin is the same and unpinned: `test_second_look_merges_only_what_its_
+    matches_pin`), are off here (84 -> 15 s in the suite)."""
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "false")
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC_LOOK", "false")
     fit, err = merge_windows(
         tmp_path,
         (sun3d / "robot_a", slice(30, 50)),
