@@ -87,3 +87,26 @@ def test_bad_inputs_are_named():
     flat = np.c_[np.random.default_rng(0).random((20, 2)), np.zeros(20)]
     with pytest.raises(BadInput, match="coplanar"):
         AffineEstimator().fit(flat, flat)
+
+
+@pytest.mark.parametrize(("n", "model"), [(12, "rigid"), (400, "rigid"), (3000, "affine")])
+def test_ransac_draws_its_samples_as_taken_the_same_as_all_up_front(n, model):
+    """The usable minimal samples drawn block by block (`_usable_blocks`, session 23) are
+    the ones drawing all `iterations` first and filtering gives, in the same order and the
+    same blocks of 256: a RANSAC that stops early answers what it answered before."""
+    from fleetmap.registration import MODELS, _usable, _usable_blocks
+
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(n, 3))
+    Y = X + 0.05 * rng.normal(size=(n, 3))
+    k, iterations = MODELS[model][0], 1000
+    lazy = list(_usable_blocks(X, Y, k, iterations, np.random.default_rng(7), 0.1, model, 1e-3))
+    if n <= 22:
+        idx = np.array(np.triu_indices(n, 1)).T
+        trip = np.array([(i, j, m) for i, j in idx for m in range(j + 1, n)])
+    else:
+        draw = np.random.default_rng(7)
+        trip = np.stack([draw.choice(n, k, replace=False) for _ in range(iterations)])
+    up_front = trip[_usable(X[trip], Y[trip], 0.1, model, 1e-3)]
+    assert [len(b) for b in lazy[:-1]] == [256] * (len(lazy) - 1)
+    np.testing.assert_array_equal(np.concatenate(lazy), up_front)
