@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
 from fleetmap.errors import BadInput, NotEnoughCorrespondences
@@ -154,8 +152,8 @@ def ransac(
     rng = np.random.default_rng(seed)
     best = np.zeros(n, bool)
     blocks = _usable_blocks(src, dst, k, iterations, rng, tol, model, min_spread)
-    for lo, trip in zip(itertools.count(0, 256), blocks, strict=False):
-        # 256 hypotheses at a time: memory bound to 256 x N points
+    for block, trip in enumerate(blocks):
+        lo = 256 * block  # 256 hypotheses at a time: memory bound to 256 x N points
         M, t = _minimal_fits(src[trip], dst[trip], model)
         pred = np.einsum("hij,nj->hni", M, src) + t[:, None]
         inl = ((pred - dst[None]) ** 2).sum(2) < tol * tol

@@ -54,6 +54,25 @@ def hololens_windows(tmp_path, hololens, a: tuple, b: tuple, seed: int):
     )
 
 
+def sun3d_windows(tmp_path, sun3d, a: tuple, b: tuple, seed: int):
+    """`merge_windows` of SUN3D robot_a frames a[0]:a[1] and robot_b frames b[0]:b[1]."""
+    return merge_windows(
+        tmp_path,
+        (sun3d / "robot_a", slice(*a)),
+        (sun3d / "robot_b", slice(*b)),
+        seed,
+        np.loadtxt(sun3d / "T_a_b.txt"),
+    )
+
+
+def right_or_refused(fit: dict, err) -> None:
+    """Merged with B's cameras within 5 cm of the truth, or refused with a reason."""
+    if fit["merged"]:
+        assert err[0] < 0.05, (err, fit)
+    else:
+        assert fit["reason"], fit
+
+
 def merged_near_truth(fit: dict, err, method: str) -> None:
     """The fit merged, by the look `method` names ("+asift": the second look, whose method
     ends so; "fpfh": the third, whose method starts so), and B's transform lies within
@@ -104,17 +123,7 @@ def test_second_look_merges_only_what_its_matches_pin(sun3d, tmp_path):
     hypothesis slid along the study room's walls and floor to a merge 14.6 cm from the
     truth at B's cameras (these frames; in the recall bench: 77 matches agreed with an
     alignment 0.22 m away, 31 with the merge). Now: merged within 5 cm, or refused."""
-    fit, err = merge_windows(
-        tmp_path,
-        (sun3d / "robot_a", slice(15, 35)),
-        (sun3d / "robot_b", slice(20, 40)),
-        42,
-        np.loadtxt(sun3d / "T_a_b.txt"),
-    )
-    if fit["merged"]:
-        assert err[0] < 0.05, (err, fit)
-    else:
-        assert fit["reason"], fit
+    right_or_refused(*sun3d_windows(tmp_path, sun3d, (15, 35), (20, 40), 42))
 
 
 def test_a_slide_along_the_rooms_planes_is_not_a_merge(sun3d, tmp_path, monkeypatch):
@@ -127,20 +136,10 @@ def test_a_slide_along_the_rooms_planes_is_not_a_merge(sun3d, tmp_path, monkeypa
     them too (`pipeline._carried`, session 23). Merged within 5 cm of the truth, or
     refused. The wrong merge was the first look's: the later looks, which refuse this pair
     too (ASIFT's basin is the same and unpinned: `test_second_look_merges_only_what_its_
-    matches_pin`), are off here (84 -> 15 s in the suite)."""
+    matches_pin`), are off here (84 -> 13 s in the suite)."""
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "false")
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC_LOOK", "false")
-    fit, err = merge_windows(
-        tmp_path,
-        (sun3d / "robot_a", slice(30, 50)),
-        (sun3d / "robot_b", slice(10, 30)),
-        11,
-        np.loadtxt(sun3d / "T_a_b.txt"),
-    )
-    if fit["merged"]:
-        assert err[0] < 0.05, (err, fit)
-    else:
-        assert fit["reason"], fit
+    right_or_refused(*sun3d_windows(tmp_path, sun3d, (30, 50), (10, 30), 11))
 
 
 def test_room_seen_from_elsewhere_is_merged_on_the_copies_asift_makes(hololens, tmp_path):
