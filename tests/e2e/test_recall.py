@@ -155,7 +155,7 @@ def test_room_seen_from_elsewhere_is_merged_on_the_copies_asift_makes(hololens, 
     merged_near_truth(fit, err, "+asift")
 
 
-def test_room_seen_across_its_planes_is_merged(hololens, tmp_path):
+def test_room_seen_across_its_planes_is_merged(hololens, tmp_path, monkeypatch):
     """hl_a frames 60-120 and hl_b 75-135 share 20% of B's surfaces, seen from far apart:
     no match agrees with the truth (ASIFT's included) and only 3-13 of thousands of FPFH
     correspondences do, so every look refused it through session 15. The rotation between
@@ -163,7 +163,10 @@ def test_room_seen_across_its_planes_is_merged(hololens, tmp_path):
     ICP at the truth, whose free space (off depth edges) and grey levels agree; merged
     within 5 cm / 2 deg of the truth. The pair sits at the bar: of three random map frames
     tried, these (71, 72) and 81's merge, 61's is refused at firm consistency 0.89 (clouds
-    voxelised in each map's own frame differ a little: docs/ALIGNER.md)."""
+    voxelised in each map's own frame differ a little: docs/ALIGNER.md). The second look,
+    which refuses this pair before the third merges it (no ASIFT match agrees with the
+    truth), is off here: the suite's longest test (97 s); alone, beside a benchmark, 74 -> 45 s."""
+    monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "false")
     fit, err = hololens_windows(tmp_path, hololens, (60, 120), (75, 135), 71)
     merged_near_truth(fit, err, "fpfh")
 
