@@ -86,18 +86,15 @@ def _usable_blocks(src, dst, k: int, iterations: int, rng, tol, model, min_sprea
     """The usable minimal samples (`_usable`) of `iterations` random ones (every triplet
     where there are at most 22 matches), in the order drawn, in blocks of 256 (the last
     shorter): drawn as the blocks are taken, so a RANSAC that stops early does not draw
-    the rest. Each draw is `rng.choice(n, k, replace=False)`, a permutation of all n
-    matches where n <= 10,000: drawing all 2,000 up front was 6% of a simulated fleet's
-    merge (py-spy, session 23), mostly for samples the adaptive stop never looked at."""
+    the rest. Each draw is `rng.choice(n, k, replace=False)`'s (`_choices`: 64 at a time):
+    drawing all 2,000 up front was 6% of a simulated fleet's merge (py-spy, session 23),
+    mostly for samples the adaptive stop never looked at."""
     n = len(src)
     if k == 3 and n <= 22:  # every triplet: at most 1540
         idx = np.array(np.triu_indices(n, 1)).T
         chunks = iter([np.array([(i, j, m) for i, j in idx for m in range(j + 1, n)])])
     else:
-        chunks = (
-            np.stack([rng.choice(n, k, replace=False) for _ in range(min(64, iterations - lo))])
-            for lo in range(0, iterations, 64)
-        )
+        chunks = (_choices(rng, n, k, min(64, iterations - lo)) for lo in range(0, iterations, 64))
     kept, have = [], 0
     for trip in chunks:
         ok = _usable(src[trip], dst[trip], tol, model, min_spread)
@@ -109,6 +106,52 @@ def _usable_blocks(src, dst, k: int, iterations: int, rng, tol, model, min_sprea
             kept, have = [block[256:]], have - 256
     if have:
         yield np.concatenate(kept)
+
+
+def _choices(rng: np.random.Generator, n: int, k: int, count: int) -> np.ndarray:
+    """`count` draws of `rng.choice(n, k, replace=False)`, (count, k), the same values and
+    `rng` left in the same state, from one block of the bit generator's words.
+
+    numpy 2's Generator draws k of n (k <= n // 50 or n <= 10,000) by Floyd's algorithm, then
+    shuffles them: k + k - 1 bounded integers per draw, each Lemire's product of one 32-bit
+    word (two per PCG64 output, low half first), drawn again only where the product's low
+    half falls under (2^32 - 1 - bound) mod (bound + 1). Done here for all draws at once;
+    where a word would be drawn again (about bound / 2^32 per word), where n = k (a bound of
+    0 draws nothing), or another bit generator, `rng.choice` itself. One call per sample was
+    half of RANSAC's time: 14 -> 1.4 ms for 2,000 samples (session 24); the unit tests hold
+    it to `rng.choice`, value for value."""
+    bg = rng.bit_generator
+    state = bg.state
+    if state.get("bit_generator") != "PCG64" or not k < n < 2**31:
+        return np.stack([rng.choice(n, k, replace=False) for _ in range(count)])
+    bounds = np.array([*range(n - k, n), *range(k - 1, 0, -1)], np.uint64)
+    has = int(state["has_uint32"])
+    raw = bg.random_raw((len(bounds) * count - has + 1) // 2 + 1)
+    words = np.stack([raw & np.uint64(0xFFFFFFFF), raw >> np.uint64(32)], 1).ravel()
+    if has:
+        words = np.concatenate([np.array([state["uinteger"]], np.uint64), words])
+    u = words[: len(bounds) * count].reshape(count, len(bounds))
+    m = u * (bounds + np.uint64(1))
+    bg.state = state
+    if np.any((m & np.uint64(0xFFFFFFFF)) < (np.uint64(0xFFFFFFFF) - bounds) % (bounds + 1)):
+        return np.stack([rng.choice(n, k, replace=False) for _ in range(count)])
+    v = (m >> np.uint64(32)).astype(np.int64)
+    out = np.empty((count, k), np.int64)
+    for t in range(k):  # Floyd: a value in [0, n - k + t], or n - k + t where taken already
+        taken = (out[:, :t] == v[:, t : t + 1]).any(1)
+        out[:, t] = np.where(taken, n - k + t, v[:, t])
+    rows = np.arange(count)
+    for t, i in enumerate(range(k - 1, 0, -1)):  # Fisher-Yates over the k taken
+        j = v[:, k + t]
+        out[rows, i], out[rows, j] = out[rows, j], out[rows, i].copy()
+    # the generator as after the draws: the words used (the buffered half first, then
+    # outputs), the unused half of the last output kept for the next 32-bit draw
+    used = len(bounds) * count - has  # >= 4: k >= 3
+    last = bg.random_raw((used + 1) // 2)[-1]
+    after = bg.state
+    after["has_uint32"], after["uinteger"] = (1, int(last >> np.uint64(32))) if used % 2 else (0, 0)
+    bg.state = after
+    return out
 
 
 def _usable(s: np.ndarray, d: np.ndarray, tol: float, model: str, min_spread: float):

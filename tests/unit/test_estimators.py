@@ -110,3 +110,37 @@ def test_ransac_draws_its_samples_as_taken_the_same_as_all_up_front(n, model):
     up_front = trip[_usable(X[trip], Y[trip], 0.1, model, 1e-3)]
     assert [len(b) for b in lazy[:-1]] == [256] * (len(lazy) - 1)
     np.testing.assert_array_equal(np.concatenate(lazy), up_front)
+
+
+def test_choices_are_rng_choice_value_for_value_and_leave_the_generator_as_it_does():
+    """`registration._choices` (a block of k-of-n draws at once) gives what one
+    `rng.choice(n, k, replace=False)` per draw gives, and leaves the generator where those
+    calls leave it (the next draws, of any kind, the same): over seeds, small and large n
+    (Floyd's algorithm beyond 10,000 too), blocks of odd and even length (the 32-bit
+    halves buffered between calls), n = k and n near 2^31 (where a word is drawn again:
+    `rng.choice` itself)."""
+    from fleetmap.registration import _choices
+
+    for seed in range(40):
+        for n, k in ((3, 3), (4, 3), (5, 4), (23, 3), (400, 3), (3000, 4), (12_000, 3)):
+            for count in (1, 7, 64):
+                ours, ref = np.random.default_rng(seed), np.random.default_rng(seed)
+                ref.random()  # a 64-bit draw first, then a 32-bit one: a half buffered
+                ours.random()
+                ref.integers(1 << 20, dtype=np.uint32)
+                ours.integers(1 << 20, dtype=np.uint32)
+                want = np.stack([ref.choice(n, k, replace=False) for _ in range(count)])
+                np.testing.assert_array_equal(_choices(ours, n, k, count), want)
+                np.testing.assert_array_equal(
+                    _choices(ours, n, k, 5), [ref.choice(n, k, replace=False) for _ in range(5)]
+                )
+                assert (
+                    ours.integers(1 << 40, size=3).tolist()
+                    == ref.integers(1 << 40, size=3).tolist()
+                )
+    big = 1_500_000_003  # 3 in 10 of the largest bounds' words drawn again
+    ours, ref = np.random.default_rng(3), np.random.default_rng(3)
+    np.testing.assert_array_equal(
+        _choices(ours, big, 3, 64), [ref.choice(big, 3, replace=False) for _ in range(64)]
+    )
+    assert ours.random() == ref.random()
