@@ -46,6 +46,31 @@ def test_depth_edges_and_holes_are_rejected():
     assert pts[0, 2] == pytest.approx(1.0) and pts[3, 2] == pytest.approx(3.0)
 
 
+def test_the_edge_window_repeats_the_border_as_padding_the_image_did():
+    """`backproject_pixels` reads each pixel's 3x3 window by clipped indices instead of a
+    padded copy of the whole image (session 24): the same points and validity as the
+    padded definition, on pixels at the borders and corners, near holes and off the image."""
+    rng = np.random.default_rng(0)
+    for smooth in (False, True):
+        depth = rng.integers(0, 20_000, (48, 64)).astype(np.uint16)
+        if smooth:  # a wall at 1 m: edges decided by a few readings of noise and the holes
+            depth = (5000 + rng.integers(0, 30, (48, 64))).astype(np.uint16)
+        depth[rng.random((48, 64)) < 0.1] = 0
+        uv = np.c_[rng.uniform(-3, 67, 3000), rng.uniform(-3, 51, 3000)]
+        uv[:4] = [[0, 0], [63, 47], [0, 47], [63, 0]]
+        pts, valid = backproject_pixels(uv, depth, TUM_FR1)
+        u = np.clip(np.round(uv[:, 0]).astype(int), 0, 63)
+        v = np.clip(np.round(uv[:, 1]).astype(int), 0, 47)
+        pad = np.pad(depth.astype(np.float64), 1, mode="edge") / TUM_FR1.depth_scale
+        win = np.stack([pad[v + dy, u + dx] for dy in range(3) for dx in range(3)], axis=1)
+        z = depth[v, u] / TUM_FR1.depth_scale
+        spread = win.max(1) - np.where(win > 0, win, np.inf).min(1)
+        want = (z > 0) & (z < 8) & (win > 0).all(1) & (spread <= 0.05 * np.maximum(z, 1e-6))
+        np.testing.assert_array_equal(valid, want)
+        assert not valid.all() and (valid.any() or not smooth)  # the wall: some of each
+        np.testing.assert_array_equal(pts[:, 2], np.where(want, z, 0.0))
+
+
 def test_dense_points_and_round_trip_through_a_pose():
     depth = np.full((48, 64), 10000, np.uint16)
     intr = Intrinsics(fx=50, fy=50, cx=32, cy=24, width=64, height=48)
