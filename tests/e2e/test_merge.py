@@ -102,10 +102,15 @@ def test_merge_reports_bad_input(tmp_path, capsys):
 @pytest.mark.slow
 def test_merge_simulated_three_robot_fleet(sim_fleet, tmp_path, capsys):
     """`fleetmap simulate` then `fleetmap merge`: every robot placed within 5 cm / 2 deg of
-    the true transform between map frames, through the overlap graph."""
+    the true transform between map frames, through the overlap graph. With `--max-views 6`
+    (6 views a robot sent to the aligner, not 12; the option is otherwise untested): the
+    simulated views all agree, and the merge's CPU halves (26 -> 14 s; 67 s in the suite)."""
     (sim, truth), out = sim_fleet, tmp_path / "out"
-    assert main(["merge", *(str(sim / r) for r in truth), "--out", str(out)]) == 0
+    args = ["merge", *(str(sim / r) for r in truth), "--max-views", "6", "--out", str(out)]
+    assert main(args) == 0
     report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["max_views"] == 6
+    assert all(max(f["views"]) <= 6 for f in report["fits"]), report["fits"]
     assert report["unmerged"] == [] and report["reference"] == "robot0"
     for robot, T in report["transforms"].items():
         dt, dr = transform_error(np.array(T), np.array(truth[robot]))
