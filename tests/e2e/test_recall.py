@@ -43,26 +43,22 @@ def merge_windows(tmp_path, a, b, seed: int, T_true_src: np.ndarray):
     return fit, error_at_cameras(np.array(report["transforms"]["B"]), T_true, tmp_path / "B")
 
 
+def pair_windows(tmp_path, folder, robots: tuple[str, str], a: tuple, b: tuple, seed: int):
+    """`merge_windows` of a two-robot recording's robots (`robots`, in `folder` with its
+    T_a_b.txt): the first's frames a[0]:a[1], the second's b[0]:b[1]."""
+    T = np.loadtxt(folder / "T_a_b.txt")
+    ra, rb = robots
+    return merge_windows(tmp_path, (folder / ra, slice(*a)), (folder / rb, slice(*b)), seed, T)
+
+
 def hololens_windows(tmp_path, hololens, a: tuple, b: tuple, seed: int):
-    """`merge_windows` of hl_a frames a[0]:a[1] and hl_b frames b[0]:b[1]."""
-    return merge_windows(
-        tmp_path,
-        (hololens / "hl_a", slice(*a)),
-        (hololens / "hl_b", slice(*b)),
-        seed,
-        np.loadtxt(hololens / "T_a_b.txt"),
-    )
+    """`pair_windows` of hl_a frames a[0]:a[1] and hl_b frames b[0]:b[1]."""
+    return pair_windows(tmp_path, hololens, ("hl_a", "hl_b"), a, b, seed)
 
 
 def sun3d_windows(tmp_path, sun3d, a: tuple, b: tuple, seed: int):
-    """`merge_windows` of SUN3D robot_a frames a[0]:a[1] and robot_b frames b[0]:b[1]."""
-    return merge_windows(
-        tmp_path,
-        (sun3d / "robot_a", slice(*a)),
-        (sun3d / "robot_b", slice(*b)),
-        seed,
-        np.loadtxt(sun3d / "T_a_b.txt"),
-    )
+    """`pair_windows` of SUN3D robot_a frames a[0]:a[1] and robot_b frames b[0]:b[1]."""
+    return pair_windows(tmp_path, sun3d, ("robot_a", "robot_b"), a, b, seed)
 
 
 def right_or_refused(fit: dict, err) -> None:

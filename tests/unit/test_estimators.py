@@ -117,7 +117,7 @@ def test_choices_are_rng_choice_value_for_value_and_leave_the_generator_as_it_do
     `rng.choice(n, k, replace=False)` per draw gives, and leaves the generator where those
     calls leave it (the next draws, of any kind, the same): over seeds, small and large n
     (Floyd's algorithm beyond 10,000 too), blocks of odd and even length (the 32-bit
-    halves buffered between calls), n = k and n near 2^31 (where a word is drawn again:
+    halves buffered between calls), n = k, and n = 1.5e9 (where a word is drawn again:
     `rng.choice` itself)."""
     from fleetmap.registration import _choices
 
