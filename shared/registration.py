@@ -112,17 +112,18 @@ def _choices(rng: np.random.Generator, n: int, k: int, count: int) -> np.ndarray
     """`count` draws of `rng.choice(n, k, replace=False)`, (count, k), the same values and
     `rng` left in the same state, from one block of the bit generator's words.
 
-    numpy 2's Generator draws k of n (k <= n // 50 or n <= 10,000) by Floyd's algorithm, then
+    numpy 2's Generator draws k of n (n <= 10,000 or k <= n // 50) by Floyd's algorithm, then
     shuffles them: k + k - 1 bounded integers per draw, each Lemire's product of one 32-bit
     word (two per PCG64 output, low half first), drawn again only where the product's low
     half falls under (2^32 - 1 - bound) mod (bound + 1). Done here for all draws at once;
     where a word would be drawn again (about bound / 2^32 per word), where n = k (a bound of
-    0 draws nothing), or another bit generator, `rng.choice` itself. One call per sample was
-    half of RANSAC's time: 14 -> 1.4 ms for 2,000 samples (session 24); the unit tests hold
-    it to `rng.choice`, value for value."""
+    0 draws nothing), a k numpy draws otherwise (a tail shuffle), or another bit generator,
+    `rng.choice` itself. One call per sample was half of RANSAC's time: 14 -> 1.4 ms for
+    2,000 samples (session 24); the unit tests hold it to `rng.choice`, value for value."""
     bg = rng.bit_generator
     state = bg.state
-    if state.get("bit_generator") != "PCG64" or not k < n < 2**31:
+    floyd = n <= 10_000 or k <= n // 50
+    if state.get("bit_generator") != "PCG64" or not k < n < 2**31 or not floyd:
         return np.stack([rng.choice(n, k, replace=False) for _ in range(count)])
     bounds = np.array([*range(n - k, n), *range(k - 1, 0, -1)], np.uint64)
     has = int(state["has_uint32"])

@@ -116,13 +116,22 @@ def test_choices_are_rng_choice_value_for_value_and_leave_the_generator_as_it_do
     """`registration._choices` (a block of k-of-n draws at once) gives what one
     `rng.choice(n, k, replace=False)` per draw gives, and leaves the generator where those
     calls leave it (the next draws, of any kind, the same): over seeds, small and large n
-    (Floyd's algorithm beyond 10,000 too), blocks of odd and even length (the 32-bit
-    halves buffered between calls), n = k, and n = 1.5e9 (where a word is drawn again:
-    `rng.choice` itself)."""
+    (Floyd's algorithm beyond 10,000 too), blocks of odd and even length (the 32-bit halves
+    buffered between calls); and where `rng.choice` itself draws: n = k, 201 of 10,001
+    (numpy's tail shuffle) and n = 1.5e9 (where a word is drawn again)."""
     from fleetmap.registration import _choices
 
     for seed in range(40):
-        for n, k in ((3, 3), (4, 3), (5, 4), (23, 3), (400, 3), (3000, 4), (12_000, 3)):
+        for n, k in (
+            (3, 3),
+            (4, 3),
+            (5, 4),
+            (23, 3),
+            (400, 3),
+            (3000, 4),
+            (12_000, 3),
+            (10_001, 201),
+        ):
             for count in (1, 7, 64):
                 ours, ref = np.random.default_rng(seed), np.random.default_rng(seed)
                 ref.random()  # a 64-bit draw first, then a 32-bit one: a half buffered
