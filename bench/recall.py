@@ -3,6 +3,7 @@ beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
         [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR] [--scale 0.4]
+        [--frames 2]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
 hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
@@ -23,6 +24,11 @@ Open3D) with `--seeds` seeds and its time. A merge is right within 5 cm, wrong b
 workbench (s < 1) from the same data, with its truth. Errors are divided by s (at the
 recording's size), so the bins and verdicts mean what they mean at s = 1; the recipe runs
 as its users would, with its fixed 5 cm voxel.
+
+`--frames K`: each pair again in K - 1 more pairs of random map frames (the recipe only in
+the first), every try a row of the table; then the pairs whose verdict changed with the
+frames alone. A verdict at a threshold's edge can go either way with the voxel grids a
+map's axes give (docs/ALIGNER.md, session 25), and one draw samples it once.
 """
 
 from __future__ import annotations
@@ -140,7 +146,7 @@ def cross_pairs(specs: dict, rng) -> list[dict]:
 
 
 def run_pair(
-    k: int, pair: dict, specs: dict, work: Path, seeds: int, rng, scale: float = 1.0
+    k: int | str, pair: dict, specs: dict, work: Path, seeds: int, rng, scale: float = 1.0
 ) -> dict:
     """fleetmap merge on the pair's two windows (their scene x `scale`), the recipe beside
     it; errors at the recording's size."""
@@ -232,6 +238,23 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def stability(rows: list[dict]) -> str:
+    """The pairs whose verdict (right, loose, wrong, missed) changed with the map frames
+    alone (`--frames`), each with its verdicts and errors frame by frame."""
+    by_pair: dict[int, list[dict]] = {}
+    for r in rows:
+        by_pair.setdefault(r["pair"], []).append(r)
+    changed = [rs for rs in by_pair.values() if len({verdict(r) for r in rs}) > 1]
+    lines = [f"verdicts that changed with the map frames: {len(changed)} of {len(by_pair)} pairs"]
+    for rs in changed:
+        each = ", ".join(
+            verdict(r) + (f" {r['error_cm']:.1f} cm" if r.get("error_cm") is not None else "")
+            for r in sorted(rs, key=lambda r: r["frame"])
+        )
+        lines.append(f"- {rs[0]['recording']} {rs[0]['bin']} {' '.join(rs[0]['windows'])}: {each}")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -249,7 +272,16 @@ def main() -> None:
     ap.add_argument(
         "--keep", type=Path, help="keep every pair's windows and merge output here (to inspect)"
     )
+    ap.add_argument(
+        "--frames",
+        type=int,
+        default=1,
+        help="random map frames per pair (the first as without it; the others without the "
+        "recipe): how many verdicts change with the frames alone",
+    )
     args = ap.parse_args()
+    if args.frames < 1:
+        ap.error(f"--frames {args.frames}: give 1 or more map frames per pair")
     if args.table:
         if not args.table.is_file():
             ap.error(f"--table {args.table}: no such file (the rows a run wrote with --json)")
@@ -271,20 +303,32 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory(prefix="fleetmap-recall-") as tmp:
         work = args.keep or Path(tmp)
-        for k, pair in enumerate(pairs):
-            row = run_pair(k, pair, specs, work, args.seeds, rng, args.scale)
+        # frame 0 draws its map frames from the draw's generator, as without --frames (the
+        # same seed, the same pairs and frames); frame f of pair k from its own
+        trials = [(k, 0, pair, rng) for k, pair in enumerate(pairs)]
+        trials += [
+            (k, f, pair, np.random.default_rng([args.seed, k, f]))
+            for f in range(1, args.frames)
+            for k, pair in enumerate(pairs)
+        ]
+        for k, f, pair, gen in trials:
+            name = k if f == 0 else f"{k}f{f}"
+            row = run_pair(name, pair, specs, work, args.seeds if f == 0 else 0, gen, args.scale)
+            row |= {"pair": k, "frame": f}
             rows.append(row)
             err = f"{row['error_cm']:.1f} cm" if row.get("error_cm") is not None else "-"
             rec = ", ".join(f"{e:.1f}" for e, _ in row["recipe"]) or "-"
             print(
                 f"{row['recording']} {row['bin']} {100 * row['overlap']:.0f}% "
-                f"{' '.join(row['windows'])}: {verdict(row)} {err} overlaps={row['overlaps']} "
-                f"{row['wall_s']:.1f} s recipe [{rec}] {row['reason']}",
+                f"{' '.join(row['windows'])} (frame {f}): {verdict(row)} {err} "
+                f"overlaps={row['overlaps']} {row['wall_s']:.1f} s recipe [{rec}] {row['reason']}",
                 flush=True,
             )
             if args.json:
                 args.json.write_text(json.dumps(rows, indent=1, default=str))
     print(table(rows))
+    if args.frames > 1:
+        print(stability(rows))
 
 
 if __name__ == "__main__":
