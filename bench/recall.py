@@ -26,9 +26,11 @@ recording's size), so the bins and verdicts mean what they mean at s = 1; the re
 as its users would, with its fixed 5 cm voxel.
 
 `--frames K`: each pair again in K - 1 more pairs of random map frames (the recipe only in
-the first), every try a row of the table; then the pairs whose verdict changed with the
-frames alone. A verdict at a threshold's edge can go either way with the voxel grids a
-map's axes give (docs/ALIGNER.md, session 25), and one draw samples it once.
+the first), every try a row of the table (its second column then counts tries); then the
+pairs whose verdict changed with the frames alone. Frame 0 is the draw without the flag
+(the same generator calls), the others come from generators of their own. A verdict at a
+threshold's edge can go either way with the voxel grids a map's axes give
+(docs/ALIGNER.md: "The frame dependence, sized"; session 25), and one draw samples it once.
 """
 
 from __future__ import annotations
@@ -212,8 +214,9 @@ def verdict(row: dict) -> str:
 def table(rows: list[dict]) -> str:
     """Counts by bin: fleetmap right / loose / wrong / missed; the recipe right and wrong
     (mean over seeds); median error of right merges; median wall times."""
+    tries = "tries" if any(r.get("frame", 0) > 0 for r in rows) else "pairs"
     lines = [
-        "| true overlap | pairs | fleetmap right (<= 5 cm) | loose | wrong (> 10 cm) | missed | "
+        f"| true overlap | {tries} | fleetmap right (<= 5 cm) | loose | wrong (> 10 cm) | missed | "
         "fleetmap median error | recipe right | recipe wrong | fleetmap time | recipe time |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -285,7 +288,10 @@ def main() -> None:
     if args.table:
         if not args.table.is_file():
             ap.error(f"--table {args.table}: no such file (the rows a run wrote with --json)")
-        print(table(json.loads(args.table.read_text())))
+        rows = json.loads(args.table.read_text())
+        print(table(rows))
+        if any(r.get("frame", 0) > 0 for r in rows):
+            print(stability(rows))
         return
     rng = np.random.default_rng(args.seed)
     specs = timelines(args.data)
@@ -320,7 +326,8 @@ def main() -> None:
             rec = ", ".join(f"{e:.1f}" for e, _ in row["recipe"]) or "-"
             print(
                 f"{row['recording']} {row['bin']} {100 * row['overlap']:.0f}% "
-                f"{' '.join(row['windows'])} (frame {f}): {verdict(row)} {err} "
+                f"{' '.join(row['windows'])}{f' (frame {f})' if args.frames > 1 else ''}: "
+                f"{verdict(row)} {err} "
                 f"overlaps={row['overlaps']} {row['wall_s']:.1f} s recipe [{rec}] {row['reason']}",
                 flush=True,
             )
