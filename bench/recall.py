@@ -214,7 +214,7 @@ def verdict(row: dict) -> str:
 def table(rows: list[dict]) -> str:
     """Counts by bin: fleetmap right / loose / wrong / missed; the recipe right and wrong
     (mean over seeds); median error of right merges; median wall times."""
-    tries = "tries" if any(r.get("frame", 0) > 0 for r in rows) else "pairs"
+    tries = "tries" if several_frames(rows) else "pairs"
     lines = [
         f"| true overlap | {tries} | fleetmap right (<= 5 cm) | loose | wrong (> 10 cm) | missed | "
         "fleetmap median error | recipe right | recipe wrong | fleetmap time | recipe time |",
@@ -239,6 +239,11 @@ def table(rows: list[dict]) -> str:
             f"{np.median(rt) if rt else float('nan'):.1f} s |"
         )
     return "\n".join(lines)
+
+
+def several_frames(rows: list[dict]) -> bool:
+    """Were the rows' pairs tried in more than one map frame (`--frames`)?"""
+    return any(r.get("frame", 0) > 0 for r in rows)
 
 
 def stability(rows: list[dict]) -> str:
@@ -290,7 +295,7 @@ def main() -> None:
             ap.error(f"--table {args.table}: no such file (the rows a run wrote with --json)")
         rows = json.loads(args.table.read_text())
         print(table(rows))
-        if any(r.get("frame", 0) > 0 for r in rows):
+        if several_frames(rows):
             print(stability(rows))
         return
     rng = np.random.default_rng(args.seed)
@@ -334,7 +339,7 @@ def main() -> None:
             if args.json:
                 args.json.write_text(json.dumps(rows, indent=1, default=str))
     print(table(rows))
-    if args.frames > 1:
+    if several_frames(rows):
         print(stability(rows))
 
 
