@@ -286,7 +286,12 @@ def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
 
 
 def cut_recording(
-    src: Path, frames: slice, dst: Path, T_new_old: np.ndarray, scale: float = 1.0
+    src: Path,
+    frames: slice,
+    dst: Path,
+    T_new_old: np.ndarray,
+    scale: float = 1.0,
+    depth_noise: float = 0.0,
 ) -> Path:
     """A robot folder at `dst` holding `src`'s frames[frames], their poses moved into
     another map frame (T_new_old maps src's map into the new one): a robot made from part
@@ -296,7 +301,13 @@ def cut_recording(
     `scale`: the scene as if `scale` times its size, seen from `scale` times as near (the
     depths, through camera.json's depth_scale, and the new map frame's lengths x scale; the
     images as they are): how the pipeline meets a desk or a hall with the same data and its
-    truth (a transform between two such robots: its translation x scale)."""
+    truth (a transform between two such robots: its translation x scale).
+
+    `depth_noise`: an active-stereo camera's depth error at 1 m (metres RMS, growing as the
+    square of the depth: `simulate.stereo_depth_noise`, at the scaled depths) added to every
+    depth image, which is then written, not linked: the same scene seen by a noisier
+    sensor (`simulate.D435_SIGMA_1M`), on top of the recording's own noise. Seeded by the
+    frame's index in `src`, so a frame is the same in every cut."""
     import json
     import os
     import shutil
@@ -305,7 +316,10 @@ def cut_recording(
 
     if not scale > 0:
         raise ValueError(f"scale must be positive, not {scale}")
+    if not depth_noise >= 0:
+        raise ValueError(f"depth_noise must be 0 or more metres at 1 m, not {depth_noise}")
     rec = read_recording(src)
+    ds = (rec.file_intrinsics or rec.intrinsics).depth_scale
     for sub in ("rgb", "depth"):
         (dst / sub).mkdir(parents=True)
     if scale != 1.0:
@@ -315,8 +329,12 @@ def cut_recording(
     elif (src / "camera.json").exists():
         (dst / "camera.json").write_text((src / "camera.json").read_text())
     rows: dict[str, list[str]] = {"rgb": [], "depth": [], "groundtruth": []}
-    for f in rec.frames[frames]:
+    for i, f in zip(range(len(rec.frames))[frames], rec.frames[frames], strict=True):
         for sub, path in (("rgb", f.rgb_path), ("depth", f.depth_path)):
+            if sub == "depth" and depth_noise > 0:
+                _noisy_depth(path, dst / sub / path.name, ds, scale, depth_noise, i)
+                rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
+                continue
             try:
                 os.link(path, dst / sub / path.name)
             except OSError:
@@ -329,3 +347,16 @@ def cut_recording(
     for name, lines in rows.items():
         (dst / f"{name}.txt").write_text("\n".join(lines) + "\n")
     return dst
+
+
+def _noisy_depth(src: Path, dst: Path, ds: float, scale: float, sigma_1m: float, seed: int):
+    """`cut_recording`'s depth image with an active-stereo camera's noise at the scaled
+    depths (`simulate.stereo_depth_noise`), written in the source's units."""
+    from fleetmap.simulate import stereo_depth_noise
+
+    raw = load_depth(src)
+    z = scale * raw.astype(np.float64) / ds  # metres in the scaled scene
+    noisy = stereo_depth_noise(z, sigma_1m, np.random.default_rng(seed))
+    out = np.clip(np.round(noisy / scale * ds), 0, 65535).astype(np.uint16)
+    if not cv2.imwrite(str(dst), out):
+        raise OSError(f"cannot write {dst}")
