@@ -143,3 +143,38 @@ def test_a_recording_cut_at_another_scale_is_the_same_scene_nearer(tmp_path):
         assert (near.rgb(g) == full.rgb(f)).all()
     with pytest.raises(ValueError, match="scale"):
         cut_recording(DEMO_ALPHA, slice(0, 2), tmp_path / "bad", T, scale=0.0)
+
+
+def test_a_recording_cut_with_stereo_noise_errs_as_depth_squared(tmp_path):
+    """`cut_recording(..., depth_noise=s)`: each depth off by an error whose RMS is s x z^2 at
+    the scaled depth z (an active-stereo camera's), within a tenth over each band of depths;
+    no reading stays none; a frame gets the same noise in every cut that holds it; a
+    negative level is refused."""
+    from fleetmap.dataset import cut_recording
+
+    T, s = np.eye(4), 0.01
+    for scale in (1.0, 0.4):
+        clean = read_recording(
+            cut_recording(DEMO_ALPHA, slice(2, 6), tmp_path / f"c{scale}", T, scale)
+        )
+        noisy = read_recording(
+            cut_recording(DEMO_ALPHA, slice(2, 6), tmp_path / f"n{scale}", T, scale, s)
+        )
+        z = np.concatenate(
+            [clean.depth(f).ravel() / clean.intrinsics.depth_scale for f in clean.frames]
+        )
+        zn = np.concatenate(
+            [noisy.depth(f).ravel() / noisy.intrinsics.depth_scale for f in noisy.frames]
+        )
+        assert ((z > 0) == (zn > 0)).mean() > 0.999
+        edges = np.quantile(z[z > 0], [0, 0.33, 0.67, 1])
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            band = (z >= lo) & (z < hi) & (zn > 0)
+            rms = np.sqrt(np.mean((zn[band] - z[band]) ** 2))
+            expected = s * np.sqrt(np.mean(z[band] ** 4))
+            assert abs(rms / expected - 1) < 0.1, (scale, lo, hi, rms, expected)
+    again = read_recording(cut_recording(DEMO_ALPHA, slice(4, 8), tmp_path / "again", T, 1.0, s))
+    first = read_recording(tmp_path / "n1.0")
+    assert (again.depth(again.frames[0]) == first.depth(first.frames[2])).all()
+    with pytest.raises(ValueError, match="depth_noise"):
+        cut_recording(DEMO_ALPHA, slice(0, 2), tmp_path / "bad", T, depth_noise=-0.001)
