@@ -69,7 +69,8 @@ def align_views(
         else:
             res.reason += f"; with affine-simulated features too: {again.reason}"
     if not res.merged and p.use_icp and p.geometric_look:
-        third = geometric_look(pair, R, p, depth)
+        probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
+        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p)
         if third.merged:
             res = third
         else:
@@ -265,11 +266,13 @@ def _carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) 
     )
 
 
-def _unpinned(T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams) -> str:
+def _unpinned(
+    T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams, floor: int = 0
+) -> str:
     """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
-    alignment nearby), or ""."""
+    alignment nearby, and at least `floor`), or ""."""
     found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
-    if found is None:
+    if found is None or found[1] < floor:
         return ""
     T_near, n, n_T = found
     return (
@@ -277,6 +280,28 @@ def _unpinned(T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignPara
         f"away ({n} against {n_T} within {p.ransac_tol_m:.2f} m): the maps' geometry alone "
         "led here (surfaces that slide along each other?)"
     )
+
+
+def pinned_or_refused(
+    third: AlignResult, R: Correspondences, probe: np.ndarray, p: AlignParams
+) -> AlignResult:
+    """The third look's merge, refused where the matches do not pin it (`_unpinned`), as
+    the second look's, where the alignment they prefer gathers at least half `min_inliers`
+    (what a merge the geometry decides needs of them, `_align`): a handful agreeing by
+    chance, among thousands of raw matches on a few surfaces, does not overrule the
+    geometry. Right third-look merges of the recall bench (1-15 of 1,400-2,200 raw matches
+    at the truth) had no alignment nearby that more agree with. Where the depth is noisy
+    the geometry slides along its planes: a HoloLens pair (35% shared) seen through an
+    active-stereo camera's noise (`simulate.stereo_depth_noise` at the D435's level, 2.6
+    cm at its 2.7 m) passed free space and colour 12 cm off, while 27 matches agreed with
+    an alignment 13 cm from it (10 from the truth) against 9 with it (docs/ALIGNER.md,
+    session 26)."""
+    if not third.merged:
+        return third
+    why = _unpinned(third.T_a_b, R, probe, p, p.min_inliers // 2)
+    if why:
+        third.merged, third.reason = False, f"{third.reason}, but {why}"
+    return third
 
 
 def _match_gate(

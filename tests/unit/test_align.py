@@ -191,3 +191,42 @@ def test_a_nearer_scene_shrinks_every_length_and_nothing_else():
     assert p.at_depth(p.reference_depth_m) == p and p.at_depth(3.0) == p
     with pytest.raises(ValueError, match="reference_depth_m"):
         AlignParams(reference_depth_m=0.0)
+
+
+def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
+    """`pipeline.pinned_or_refused`: a third-look merge 13 cm off, where 25 of 1,500 raw
+    matches agree with an alignment nearby (the truth) and none with it, is refused, naming
+    both counts; the same merge at the truth stands; and where the matches say almost
+    nothing (3 right ones among 1,500 random, under half `min_inliers`), a merge the
+    geometry found stands (the look is for pairs no matcher ties)."""
+    from fleetmap.align.pipeline import pinned_or_refused
+    from fleetmap.align.types import AlignResult
+    from fleetmap.correspondences import Correspondences
+    from fleetmap.geometry import apply
+
+    rng, p = np.random.default_rng(3), AlignParams()
+    T_true = np.eye(4)
+    T_true[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * [1, 1, 1]
+    T_true[:3, :3] *= np.sign(np.linalg.det(T_true[:3, :3]))
+    T_true[:3, 3] = [1.0, -0.5, 0.3]
+    slid = T_true.copy()
+    slid[:3, 3] += [0.13, 0.0, 0.0]
+    box = np.array([3.0, 2.0, 2.0])
+    probe = rng.uniform(0, 1, (300, 3)) * box
+
+    def matches(right: int) -> Correspondences:
+        X = rng.uniform(0, 1, (1500, 3)) * box
+        Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
+        Y[:right] = apply(T_true, X[:right]) + rng.normal(0, 0.01, (right, 3))
+        return Correspondences(X, Y, np.zeros(1500, int))
+
+    def third(T):
+        return AlignResult(True, "passed on the maps' geometry and colour", T.copy(), "fpfh+icp")
+
+    R = matches(25)
+    out = pinned_or_refused(third(slid), R, probe, p)
+    assert not out.merged and "agree better" in out.reason and "against" in out.reason
+    assert pinned_or_refused(third(T_true), R, probe, p).merged
+    assert pinned_or_refused(third(slid), matches(3), probe, p).merged
+    refused = AlignResult(False, "no alignment passes")
+    assert pinned_or_refused(refused, R, probe, p).reason == "no alignment passes"
