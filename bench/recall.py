@@ -248,8 +248,9 @@ def table(rows: list[dict]) -> str:
             f"| {label} | {len(rs)} | {v.count('right')} | {v.count('loose')} | "
             f"{v.count('wrong')} | {v.count('missed')} | "
             f"{np.median(errs) if errs else float('nan'):.1f} cm | "
-            f"{rr:.1f} | {rw:.1f} | {np.median([r['wall_s'] for r in rs]):.1f} s | "
-            f"{np.median(rt) if rt else float('nan'):.1f} s |"
+            f"{f'{rr:.1f} | {rw:.1f}' if rec else '- | -'} | "
+            f"{np.median([r['wall_s'] for r in rs]):.1f} s | "
+            f"{f'{np.median(rt):.1f} s' if rt else '-'} |"
         )
     return "\n".join(lines)
 
