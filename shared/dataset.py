@@ -309,8 +309,6 @@ def cut_recording(
     sensor (`simulate.D435_SIGMA_1M`), on top of the recording's own noise. Seeded by the
     frame's index in `src`, so a frame is the same in every cut."""
     import json
-    import os
-    import shutil
 
     from fleetmap.geometry import pose_to_tum
 
@@ -333,12 +331,8 @@ def cut_recording(
         for sub, path in (("rgb", f.rgb_path), ("depth", f.depth_path)):
             if sub == "depth" and depth_noise > 0:
                 _noisy_depth(path, dst / sub / path.name, ds, scale, depth_noise, i)
-                rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
-                continue
-            try:
-                os.link(path, dst / sub / path.name)
-            except OSError:
-                shutil.copyfile(path, dst / sub / path.name)
+            else:
+                _link_or_copy(path, dst / sub / path.name)
             rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
         T = T_new_old @ f.T_map_cam
         T[:3, 3] *= scale
@@ -347,6 +341,17 @@ def cut_recording(
     for name, lines in rows.items():
         (dst / f"{name}.txt").write_text("\n".join(lines) + "\n")
     return dst
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """A hard link to `src` at `dst` where the file system allows, else a copy."""
+    import os
+    import shutil
+
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
 
 
 def _noisy_depth(src: Path, dst: Path, ds: float, scale: float, sigma_1m: float, seed: int):
