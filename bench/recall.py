@@ -315,8 +315,8 @@ def main() -> None:
         noise = D435_SIGMA_1M if noise == "d435" else float(noise)
     except ValueError:
         ap.error(f"--depth-noise {noise}: give metres at 1 m (0.0037) or 'd435'")
-    if not noise >= 0:
-        ap.error(f"--depth-noise {noise}: give 0 or more metres at 1 m")
+    if not (0 <= noise < 1):  # NaN and inf are not
+        ap.error(f"--depth-noise {noise}: give metres at 1 m, from 0 to under 1")
     if args.table:
         if not args.table.is_file():
             ap.error(f"--table {args.table}: no such file (the rows a run wrote with --json)")

@@ -314,8 +314,8 @@ def cut_recording(
 
     if not scale > 0:
         raise ValueError(f"scale must be positive, not {scale}")
-    if not depth_noise >= 0:
-        raise ValueError(f"depth_noise must be 0 or more metres at 1 m, not {depth_noise}")
+    if not 0 <= depth_noise < 1:  # NaN and inf are not
+        raise ValueError(f"depth_noise must be 0 to under 1 metre at 1 m, not {depth_noise}")
     rec = read_recording(src)
     ds = (rec.file_intrinsics or rec.intrinsics).depth_scale
     for sub in ("rgb", "depth"):

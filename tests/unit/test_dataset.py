@@ -149,7 +149,7 @@ def test_a_recording_cut_with_stereo_noise_errs_as_depth_squared(tmp_path):
     """`cut_recording(..., depth_noise=s)`: each depth off by an error whose RMS is s x z^2 at
     the scaled depth z (an active-stereo camera's), within a tenth over each band of depths;
     no reading stays none; a frame gets the same noise in every cut that holds it; a
-    negative level is refused."""
+    negative, NaN or infinite level is refused."""
     from fleetmap.dataset import cut_recording
 
     T, s = np.eye(4), 0.01
@@ -176,5 +176,6 @@ def test_a_recording_cut_with_stereo_noise_errs_as_depth_squared(tmp_path):
     again = read_recording(cut_recording(DEMO_ALPHA, slice(4, 8), tmp_path / "again", T, 1.0, s))
     first = read_recording(tmp_path / "n1.0")
     assert (again.depth(again.frames[0]) == first.depth(first.frames[2])).all()
-    with pytest.raises(ValueError, match="depth_noise"):
-        cut_recording(DEMO_ALPHA, slice(0, 2), tmp_path / "bad", T, depth_noise=-0.001)
+    for bad in (-0.001, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="depth_noise"):
+            cut_recording(DEMO_ALPHA, slice(0, 2), tmp_path / "bad", T, depth_noise=bad)
