@@ -317,11 +317,11 @@ def cut_recording(
     if not 0 <= depth_noise < 1:  # NaN and inf are not
         raise ValueError(f"depth_noise must be 0 to under 1 metre at 1 m, not {depth_noise}")
     rec = read_recording(src)
-    ds = (rec.file_intrinsics or rec.intrinsics).depth_scale
+    native = rec.file_intrinsics or rec.intrinsics
     for sub in ("rgb", "depth"):
         (dst / sub).mkdir(parents=True)
     if scale != 1.0:
-        cam = (rec.file_intrinsics or rec.intrinsics).to_dict()
+        cam = native.to_dict()
         cam["depth_scale"] /= scale
         (dst / "camera.json").write_text(json.dumps(cam))
     elif (src / "camera.json").exists():
@@ -330,9 +330,9 @@ def cut_recording(
     for i, f in zip(range(len(rec.frames))[frames], rec.frames[frames], strict=True):
         for sub, path in (("rgb", f.rgb_path), ("depth", f.depth_path)):
             if sub == "depth" and depth_noise > 0:
-                _noisy_depth(path, dst / sub / path.name, ds, scale, depth_noise, i)
+                _noisy_depth(path, dst / sub / path.name, native.depth_scale, scale, depth_noise, i)
             else:
-                _link_or_copy(path, dst / sub / path.name)
+                link_or_copy(path, dst / sub / path.name)
             rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
         T = T_new_old @ f.T_map_cam
         T[:3, 3] *= scale
@@ -343,7 +343,7 @@ def cut_recording(
     return dst
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
+def link_or_copy(src: Path, dst: Path) -> None:
     """A hard link to `src` at `dst` where the file system allows, else a copy."""
     import os
     import shutil

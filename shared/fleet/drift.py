@@ -66,11 +66,9 @@ def write_drifted(
     its poses (the robot's own SLAM) moved into a new map frame by T_new_old and drifted
     as `inject_drift` says; images hard-linked (copied where links fail). Returns the true
     camera-to-map poses of shape (N, 4, 4) in the new frame, in the copy's frame order."""
-    import os
-    import shutil
     from pathlib import Path
 
-    from fleetmap.dataset import read_recording
+    from fleetmap.dataset import link_or_copy, read_recording
     from fleetmap.geometry import pose_to_tum
 
     src, dst = Path(src), Path(dst)
@@ -87,10 +85,7 @@ def write_drifted(
         for sub, path in (("rgb", f.rgb_path), ("depth", f.depth_path)):
             target = dst / sub / path.name
             if not target.exists():
-                try:
-                    os.link(path, target)
-                except OSError:
-                    shutil.copyfile(path, target)
+                link_or_copy(path, target)
             rows[sub].append(f"{f.stamp:.6f} {sub}/{path.name}")
         rows["groundtruth"].append(f"{f.stamp:.6f} " + " ".join(f"{x:.9f}" for x in pose_to_tum(T)))
     for name, lines in rows.items():
