@@ -20,6 +20,25 @@ def test_alignment_types_load_neither_torch_nor_open3d():
     assert out.stdout.strip() == "[]"
 
 
+def test_open3d_under_fleetmap_skips_its_plotly_viewer_and_says_so():
+    """Open3D's Plotly viewer (Dash, Flask, IPython) is most of its import; fleetmap's
+    registration works without it, and asking for the viewer names the way to get it."""
+    code = (
+        "import sys, fleetmap, open3d\n"
+        "from fleetmap.mapcloud import REG\n"
+        "REG.TransformationEstimationPointToPlane()\n"
+        "print(sorted(m for m in ('dash', 'plotly', 'IPython') if m in sys.modules))\n"
+        "try:\n"
+        "    open3d.visualization.draw_plotly([])\n"
+        "except RuntimeError as e:\n"
+        "    print(e)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    loaded, message = out.stdout.splitlines()
+    assert loaded == "[]"
+    assert "import open3d before fleetmap" in message
+
+
 def test_import_fleetmap_from_a_user_folder_with_its_own_shared(tmp_path):
     """A user project with its own `shared/` and `services/` (here: both raise on import)
     still gets ours as `fleetmap`, and the console script's module."""
