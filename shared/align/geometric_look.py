@@ -211,15 +211,11 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
-        dt = displacement_rms(h.T_a_b, win.T_a_b, probe)
-        dr = transform_error(h.T_a_b, win.T_a_b)[1]
-        if dt > p.rival_m or dr > p.rival_deg:  # unless it slid as far as a rival: no
-            # basin holds there. A HoloLens lounge window merged with a SUN3D study room
-            # (other map frames) on a basin at overlap 0.11 whose refinement slid 0.79 m /
-            # 14 deg; right merges' refinements moved 0-1 cm (docs/ALIGNER.md, session 27)
+        slid = _slid_away(h.T_a_b, win.T_a_b, probe, p)
+        if slid:  # unless it slid as far as a rival: no basin holds there
             return AlignResult(
-                False, f"the best alignment does not hold: refined, it slid {dt:.2f} m / "
-                f"{dr:.0f} deg to where the gate refuses it ({refined.why_not(look, p)})",
+                False, f"the best alignment does not hold: refined, it slid {slid} to "
+                f"where the gate refuses it ({refined.why_not(look, p)})",
             )  # fmt: skip
         h.T_a_b, refined = win.T_a_b, win
     return AlignResult(
@@ -233,3 +229,12 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         fitness=refined.overlap[0],
         hypotheses=[h.summary()],
     )
+
+
+def _slid_away(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
+    """How far T moved from T0 ("0.80 m / 14 deg") where that is beyond the gate's rivals
+    (`rival_m`, `rival_deg`), else "". A HoloLens lounge window merged with a SUN3D study
+    room (other map frames) on a basin at overlap 0.11 whose refinement slid 0.79 m /
+    14 deg; right merges' refinements moved 0-1 cm (docs/ALIGNER.md, session 27)."""
+    dt, dr = displacement_rms(T, T0, probe), transform_error(T, T0)[1]
+    return f"{dt:.2f} m / {dr:.0f} deg" if dt > p.rival_m or dr > p.rival_deg else ""
