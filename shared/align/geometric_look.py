@@ -202,12 +202,9 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         return AlignResult(False, f"no alignment passes: at best {best.why_not(look, p)}")
     win, probe = passing[0], probe_points(clouds[1].at(voxel))
     for j in passing[1:]:  # basins a voxel apart may refine into one place: rivals are far
-        dt = displacement_rms(j.T_a_b, win.T_a_b, probe)
-        dr = transform_error(j.T_a_b, win.T_a_b)[1]
-        if dt > p.rival_m or dr > p.rival_deg:
-            return AlignResult(
-                False, f"ambiguous: another alignment {dt:.2f} m / {dr:.0f} deg away passes too"
-            )
+        far = _slid_away(j.T_a_b, win.T_a_b, probe, p)
+        if far:
+            return AlignResult(False, f"ambiguous: another alignment {far} away passes too")
     h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
@@ -232,9 +229,10 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
 
 
 def _slid_away(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
-    """How far T moved from T0 ("0.80 m / 14 deg") where that is beyond the gate's rivals
-    (`rival_m`, `rival_deg`), else "". A HoloLens lounge window merged with a SUN3D study
-    room (other map frames) on a basin at overlap 0.11 whose refinement slid 0.79 m /
-    14 deg; right merges' refinements moved 0-1 cm (docs/ALIGNER.md, session 27)."""
+    """How far T lies from T0 ("0.80 m / 14 deg") where that is beyond the gate's rivals
+    (`rival_m`, `rival_deg`), else "": a passing rival, or a refinement that slid. A
+    HoloLens lounge window merged with a SUN3D study room (other map frames) on a basin at
+    overlap 0.11 whose refinement slid 0.79 m / 14 deg; right merges' refinements moved
+    0-1 cm (docs/ALIGNER.md, session 27)."""
     dt, dr = displacement_rms(T, T0, probe), transform_error(T, T0)[1]
     return f"{dt:.2f} m / {dr:.0f} deg" if dt > p.rival_m or dr > p.rival_deg else ""
