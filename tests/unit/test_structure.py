@@ -93,3 +93,25 @@ def test_modules_and_functions_stay_small():
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
                 n = node.end_lineno - node.lineno + 1
                 assert n <= 60, f"{name}.{node.name}: {n} lines"
+
+
+def test_the_schedulers_names_are_real_tests():
+    """Every test the suite's scheduler names (`tests/scheduling.py`: its costs, the tests
+    run apart and the shared groups) is a module or a test function that exists: a renamed
+    test would silently lose its place in the longest-first order."""
+    from tests.scheduling import APART, COST_S, SHARED
+
+    groups = set(SHARED.values())
+    names = [*APART, *SHARED, *(k for k in COST_S if k not in groups)]
+    for name in names:
+        module, _, test = name.partition("::")
+        path = ROOT / module
+        assert path.is_file(), name
+        if test:
+            func = test.split("[", 1)[0]
+            defined = {
+                n.name
+                for n in ast.walk(ast.parse(path.read_text()))
+                if isinstance(n, ast.FunctionDef)
+            }
+            assert func in defined, name
