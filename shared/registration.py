@@ -199,8 +199,7 @@ def ransac(
     for block, trip in enumerate(blocks):
         lo = 256 * block  # 256 hypotheses at a time: memory bound to 256 x N points
         M, t = _minimal_fits(src[trip], dst[trip], model)
-        pred = np.einsum("hij,nj->hni", M, src) + t[:, None]
-        inl = ((pred - dst[None]) ** 2).sum(2) < tol * tol
+        inl = _within(M, t, src, dst, tol)
         j = inl.sum(1).argmax()
         if inl[j].sum() > best.sum():
             best = inl[j]
@@ -209,6 +208,17 @@ def ransac(
         if w > 0 and lo + 256 >= np.log(1e-3) / np.log(max(1 - w**k, 1e-12)):
             break
     return _refit(src, dst, best, tol, fit, k)
+
+
+def _within(M: np.ndarray, t: np.ndarray, src: np.ndarray, dst: np.ndarray, tol: float):
+    """Which matches (src -> dst, (N, 3)) each of H models (M (H, 3, 3), t (H, 3)) puts
+    within `tol`: bool (H, N). A batched matrix product and one squared norm in place: 3-4x
+    the `einsum` and temporaries it replaces (256 models x 10,000 matches: 400 -> 110 ms),
+    which were two thirds of RANSAC on a TUM pair (py-spy: 2.1 of 3.0 s)."""
+    d = np.matmul(src, M.transpose(0, 2, 1))
+    d += t[:, None]
+    d -= dst
+    return np.einsum("hni,hni->hn", d, d) < tol * tol
 
 
 def _refit(src, dst, best: np.ndarray, tol: float, fit, k: int = 3):
@@ -289,8 +299,7 @@ def _seeded_fits(src, dst, i: int, local: np.ndarray, tol: float, rng, per_seed:
     if not ok.any():
         return []
     M, t = _batch_kabsch(s[ok], d[ok])
-    pred = np.einsum("hij,nj->hni", M, src[local]) + t[:, None]
-    count = (((pred - dst[local][None]) ** 2).sum(2) < tol * tol).sum(1)
+    count = _within(M, t, src[local], dst[local], tol).sum(1)
     j = int(count.argmax())
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = M[j], t[j]
