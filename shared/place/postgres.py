@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 import time
 import zlib
 from collections.abc import Callable, Iterator
@@ -32,6 +31,7 @@ from fleetmap.errors import Conflict, StorageCorrupt, Unavailable, UnknownKeyfra
 from fleetmap.place import postgres_schema as schema
 from fleetmap.place.store import (
     PG_TIMEOUT_S,
+    GroupCommit,
     IndexRows,
     LinkRow,
     OverlapRow,
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 MAX_ATTEMPTS = 3  # a keyframe whose overlap detection raised this often is left aside
 
 
-class PostgresStore:
+class PostgresStore(GroupCommit):
     """Robots, keyframes, overlaps, links and codebooks in one PostgreSQL database."""
 
     shared = True  # other processes write the same database
@@ -59,10 +59,7 @@ class PostgresStore:
         self.vocab_id, self.timeout_s = vocab_id, timeout_s
         self.storage_errors = 0
         self.startup_warning = ""
-        self._write_lock = threading.Lock()
-        self._pending_lock = threading.Lock()
-        self._pending: list[Pending] = []
-        self._closed = False
+        self._init_group_commit()
         self._codes: dict[str, int] = {}
         self._names: dict[int, str] = {}
         self.pool = ConnectionPool(
@@ -184,23 +181,10 @@ class PostgresStore:
         """(deletion id, robot code) of robots deleted since `after`, by any replica."""
         return self._all("SELECT id, robot FROM deletions WHERE id > %s ORDER BY id", (after,))
 
-    def add_frames(self, items: list[Pending], on_commit: Callable[[list[Pending]], None]) -> None:
-        """Group commit, as in SQLite: this replica's concurrent callers' frames in one
-        transaction, under the cluster-wide ingest lock (ids in commit order)."""
-        with self._pending_lock:
-            self._pending.extend(items)
-        with self._write_lock:
-            if not items[-1].done:
-                with self._pending_lock:
-                    batch, self._pending = self._pending, []
-                added = self._commit(batch)
-                if added:
-                    on_commit(added)
-
     def _commit(self, batch: list[Pending]) -> list[Pending]:
-        if self._closed:
-            for it in batch:
-                it.error, it.done = Unavailable("place database is shutting down"), True
+        """A batch in one transaction, under the cluster-wide ingest lock (ids in commit order
+        across replicas)."""
+        if self._refused_when_closed(batch):
             return []
         added: dict[tuple[str, float], Pending] = {}
         try:

@@ -22,12 +22,12 @@ import numpy as np
 
 import fleetmap.place.sqlite_files as files
 from fleetmap.errors import Conflict, StorageCorrupt, Unavailable, UnknownKeyframe
-from fleetmap.place.store import IndexRows, LinkRow, OverlapRow, Pending, WinnerRow
+from fleetmap.place.store import GroupCommit, IndexRows, LinkRow, OverlapRow, Pending, WinnerRow
 
 log = logging.getLogger(__name__)
 
 
-class SQLiteStore:
+class SQLiteStore(GroupCommit):
     """Robots, keyframes, overlaps, links and codebooks in one SQLite file."""
 
     shared = False  # one process has the file open (`sqlite_files`' open marker tells)
@@ -39,11 +39,8 @@ class SQLiteStore:
         lost_log = files.log_was_lost(self.path)  # before SQLite opens it (a new log)
         self.vocab_id = vocab_id
         self.storage_errors = 0
-        self._write_lock = threading.Lock()
-        self._pending_lock = threading.Lock()
-        self._pending: list[Pending] = []
+        self._init_group_commit()
         self._local = threading.local()
-        self._closed = False
         self._db = files.connect(self.path)
         with self._write_lock:
             files.init_schema(self._db, self.path, vocab_id)
@@ -105,26 +102,9 @@ class SQLiteStore:
         while rows := cur.fetchmany(batch):
             yield IndexRows.from_rows(rows)
 
-    def add_frames(self, items: list[Pending], on_commit: Callable[[list[Pending]], None]) -> None:
-        """Store checked frames durably. Group commit: concurrent callers queue their
-        frames, and whoever holds the write lock commits everything queued in one
-        transaction (one fsync for many robots), then calls `on_commit(added)` under the
-        lock, so the index sees keyframes in commit order."""
-        with self._pending_lock:
-            self._pending.extend(items)
-        with self._write_lock:
-            if not items[-1].done:
-                with self._pending_lock:
-                    batch, self._pending = self._pending, []
-                added = self._commit(batch)
-                if added:
-                    on_commit(added)
-
     def _commit(self, batch: list[Pending]) -> list[Pending]:
         """Write a batch in one transaction (caller holds the write lock)."""
-        if self._closed:
-            for it in batch:
-                it.error, it.done = Unavailable("place database is shutting down"), True
+        if self._refused_when_closed(batch):
             return []
         new_robots = [n for n in {it.robot_id for it in batch} if n not in self._codes]
         added: dict[tuple[str, float], Pending] = {}

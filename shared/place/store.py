@@ -10,6 +10,7 @@ processes write too (`shared`) is also a `SharedStore`: replicas follow it.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from fleetmap.errors import Unavailable
 from fleetmap.frame import Frame
 
 
@@ -32,6 +34,43 @@ class Pending:
     result: tuple[int, bool] | None = None  # (keyframe id, newly created)
     error: Exception | None = None
     done: bool = False
+
+
+class GroupCommit:
+    """The group commit of both backends: concurrent callers queue their frames, and whoever
+    holds the write lock commits everything queued in one transaction (one fsync for many
+    robots), then calls `on_commit(added)` under the lock, so the index sees keyframes in
+    commit order. A backend calls `_init_group_commit` and implements `_commit(batch)`,
+    which writes a batch in one transaction (the caller holds the write lock) and returns
+    the frames newly added."""
+
+    def _init_group_commit(self) -> None:
+        self._write_lock = threading.Lock()
+        self._pending_lock = threading.Lock()
+        self._pending: list[Pending] = []
+        self._closed = False
+
+    def _commit(self, batch: list[Pending]) -> list[Pending]:
+        raise NotImplementedError
+
+    def add_frames(self, items: list[Pending], on_commit: Callable[[list[Pending]], None]) -> None:
+        """Store checked frames durably (the group commit above)."""
+        with self._pending_lock:
+            self._pending.extend(items)
+        with self._write_lock:
+            if not items[-1].done:
+                with self._pending_lock:
+                    batch, self._pending = self._pending, []
+                added = self._commit(batch)
+                if added:
+                    on_commit(added)
+
+    def _refused_when_closed(self, batch: list[Pending]) -> bool:
+        """Once closed (shutting down): every frame of the batch answered Unavailable."""
+        if self._closed:
+            for it in batch:
+                it.error, it.done = Unavailable("place database is shutting down"), True
+        return self._closed
 
 
 @dataclass
