@@ -22,12 +22,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-import zlib
 from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from fleetmap.errors import Conflict, StorageCorrupt, Unavailable, UnknownKeyframe
+from fleetmap.errors import Conflict, Unavailable, UnknownKeyframe
 from fleetmap.place import postgres_schema as schema
 from fleetmap.place.store import (
     PG_TIMEOUT_S,
@@ -37,6 +36,7 @@ from fleetmap.place.store import (
     OverlapRow,
     Pending,
     WinnerRow,
+    checked_frame,
 )
 
 log = logging.getLogger(__name__)
@@ -209,17 +209,7 @@ class PostgresStore(GroupCommit):
     def frame_bytes(self, kf_id: int) -> bytes:
         """The stored encoded frame of a keyframe, its CRC-32 checked."""
         row = self._one("SELECT data FROM keyframes WHERE id=%s", (int(kf_id),))
-        if row is None:
-            raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
-        data = bytes(row[0])
-        if len(data) < 4 or zlib.crc32(data[:-4]) != int.from_bytes(data[-4:], "little"):
-            self.storage_errors += 1
-            log.error("keyframe %d: stored frame fails its CRC-32 (storage corrupted)", kf_id)
-            raise StorageCorrupt(
-                f"Keyframe {kf_id}: the stored frame fails its checksum (storage corrupted); "
-                "the operator should restore it or delete the robot"
-            )
-        return data
+        return checked_frame(self, kf_id, row)
 
     def keyframe_info(self, kf_id: int) -> dict:
         row = self._one(

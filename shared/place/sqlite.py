@@ -14,15 +14,22 @@ import logging
 import sqlite3
 import threading
 import time
-import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 import fleetmap.place.sqlite_files as files
-from fleetmap.errors import Conflict, StorageCorrupt, Unavailable, UnknownKeyframe
-from fleetmap.place.store import GroupCommit, IndexRows, LinkRow, OverlapRow, Pending, WinnerRow
+from fleetmap.errors import Conflict, Unavailable, UnknownKeyframe
+from fleetmap.place.store import (
+    GroupCommit,
+    IndexRows,
+    LinkRow,
+    OverlapRow,
+    Pending,
+    WinnerRow,
+    checked_frame,
+)
 
 log = logging.getLogger(__name__)
 
@@ -192,19 +199,7 @@ class SQLiteStore(GroupCommit):
     def frame_bytes(self, kf_id: int) -> bytes:
         """The stored encoded frame of a keyframe, its CRC-32 checked."""
         row = self._read("SELECT data FROM keyframes WHERE id=?", (int(kf_id),)).fetchone()
-        if row is None:
-            raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
-        data = bytes(row[0])
-        if len(data) < 4 or zlib.crc32(memoryview(data)[:-4]) != int.from_bytes(
-            data[-4:], "little"
-        ):
-            self.storage_errors += 1
-            log.error("keyframe %d: stored frame fails its CRC-32 (storage corrupted)", kf_id)
-            raise StorageCorrupt(
-                f"Keyframe {kf_id}: the stored frame fails its checksum (storage corrupted); "
-                "the operator should restore it or delete the robot"
-            )
-        return data
+        return checked_frame(self, kf_id, row)
 
     def keyframe_info(self, kf_id: int) -> dict:
         row = self._read(

@@ -10,7 +10,9 @@ processes write too (`shared`) is also a `SharedStore`: replicas follow it.
 
 from __future__ import annotations
 
+import logging
 import threading
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
@@ -19,8 +21,10 @@ from typing import Protocol
 
 import numpy as np
 
-from fleetmap.errors import Unavailable
+from fleetmap.errors import StorageCorrupt, Unavailable, UnknownKeyframe
 from fleetmap.frame import Frame
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(eq=False)
@@ -71,6 +75,23 @@ class GroupCommit:
             for it in batch:
                 it.error, it.done = Unavailable("place database is shutting down"), True
         return self._closed
+
+
+def checked_frame(store, kf_id: int, row) -> bytes:
+    """The encoded frame a backend read for keyframe `kf_id` (`row`: its one column, or
+    None where there is no such keyframe), its CRC-32 checked; a failure is counted in
+    `store.storage_errors` and logged."""
+    if row is None:
+        raise UnknownKeyframe(f"Unknown keyframe {kf_id}")
+    data = bytes(row[0])
+    if len(data) < 4 or zlib.crc32(memoryview(data)[:-4]) != int.from_bytes(data[-4:], "little"):
+        store.storage_errors += 1
+        log.error("keyframe %d: stored frame fails its CRC-32 (storage corrupted)", kf_id)
+        raise StorageCorrupt(
+            f"Keyframe {kf_id}: the stored frame fails its checksum (storage corrupted); "
+            "the operator should restore it or delete the robot"
+        )
+    return data
 
 
 @dataclass
