@@ -19,10 +19,7 @@ import time
 import numpy as np
 
 from fleetmap.errors import BadInput, NotEnoughCorrespondences
-from fleetmap.lazy import LazyModule
 from fleetmap.registration import MODELS, fit_affine, ransac
-
-torch = LazyModule("torch")  # only the MLP needs it
 
 log = logging.getLogger(__name__)
 
@@ -165,33 +162,17 @@ class MLPEstimator:
         self.val_fraction, self.optimizer, self.random_state = val_fraction, optimizer, random_state
         self.init = init
 
-    def _forward(self, theta: torch.Tensor, Z: torch.Tensor) -> torch.Tensor:
+    def _forward(self, theta, Z, xp=np):
+        """The network's outputs for whitened inputs Z (N, 3); `xp`: numpy, or torch for
+        the Adam comparison's autograd."""
         h = self.hidden
         W1 = theta[: 3 * h].reshape(h, 3)
         b1 = theta[3 * h : 4 * h]
         W2 = theta[4 * h : 7 * h].reshape(3, h)
         b2 = theta[7 * h : 7 * h + 3]
-        return (self.A * torch.tanh(self.B * (Z @ W1.T + b1))) @ W2.T + b2
+        return (self.A * xp.tanh(self.B * (Z @ W1.T + b1))) @ W2.T + b2
 
-    def _jacobian(self, theta: torch.Tensor, Z: torch.Tensor) -> torch.Tensor:
-        """Analytic Jacobian of the flattened outputs (N*3,) w.r.t. theta: shape (N*3, P)."""
-        h, n = self.hidden, len(Z)
-        W1 = theta[: 3 * h].reshape(h, 3)
-        b1 = theta[3 * h : 4 * h]
-        W2 = theta[4 * h : 7 * h].reshape(3, h)
-        t = torch.tanh(self.B * (Z @ W1.T + b1))  # (N, h)
-        a = self.A * t
-        da = self.A * self.B * (1 - t * t)  # d a / d z, (N, h)
-        J = torch.zeros(n, 3, len(theta), dtype=theta.dtype)
-        g = W2[None, :, :] * da[:, None, :]  # d out_k / d z_j: (N, 3, h)
-        J[:, :, : 3 * h] = (g[:, :, :, None] * Z[:, None, None, :]).reshape(n, 3, 3 * h)
-        J[:, :, 3 * h : 4 * h] = g
-        for k in range(3):
-            J[:, k, 4 * h + k * h : 4 * h + (k + 1) * h] = a
-            J[:, k, 7 * h + k] = 1.0
-        return J.reshape(n * 3, -1)
-
-    def _normal_equations(self, theta: torch.Tensor, Z: torch.Tensor, e: torch.Tensor):
+    def _normal_equations(self, theta: np.ndarray, Z: np.ndarray, e: np.ndarray):
         """J^T J (P, P) and J^T e (P,) without forming J, from its block structure.
 
         Output k depends on the second layer only through row k of W2 and b2, and on the
@@ -203,22 +184,22 @@ class MLPEstimator:
         W1 = theta[: 3 * h].reshape(h, 3)
         b1 = theta[3 * h : 4 * h]
         W2 = theta[4 * h : 7 * h].reshape(3, h)
-        t = torch.tanh(self.B * (Z @ W1.T + b1))
+        t = np.tanh(self.B * (Z @ W1.T + b1))
         da = self.A * self.B * (1 - t * t)  # (N, h)
-        one = torch.ones(n, 1, dtype=Z.dtype)
-        Zt = torch.cat([Z, one], 1)  # (N, 4)
-        At = torch.cat([self.A * t, one], 1)  # (N, h+1)
+        one = np.ones((n, 1))
+        Zt = np.hstack([Z, one])  # (N, 4)
+        At = np.hstack([self.A * t, one])  # (N, h+1)
         F = (da[:, :, None] * Zt[:, None, :]).reshape(n, 4 * h)
         Q = F.T @ F
-        M = torch.kron(W2.T @ W2, torch.ones(4, 4, dtype=Z.dtype))
+        M = np.kron(W2.T @ W2, np.ones((4, 4)))
         B = F.T @ At  # (4h, h+1)
         AA = At.T @ At
         m = h + 1
         size = 4 * h + 3 * m
-        H = torch.zeros(size, size, dtype=Z.dtype)
+        H = np.zeros((size, size))
         H[: 4 * h, : 4 * h] = Q * M
-        w = W2.repeat_interleave(4, dim=1)  # (3, 4h): W2[k, j] at (j, q)
-        g = torch.empty(size, dtype=Z.dtype)
+        w = np.repeat(W2, 4, axis=1)  # (3, 4h): W2[k, j] at (j, q)
+        g = np.empty(size)
         eW = e @ W2  # (N, h)
         g[: 4 * h] = ((eW * da).T @ Zt).reshape(-1)
         for k in range(3):
@@ -229,9 +210,9 @@ class MLPEstimator:
             H[lo : lo + m, lo : lo + m] = AA
             g[lo : lo + m] = At.T @ e[:, k]
         inv = self._layout()
-        return H[inv][:, inv], g[inv]
+        return H[np.ix_(inv, inv)], g[inv]
 
-    def _layout(self) -> torch.Tensor:
+    def _layout(self) -> np.ndarray:
         """For each index of theta, its index in the augmented layout used above."""
         if getattr(self, "_inv", None) is None or len(self._inv) != 7 * self.hidden + 3:
             h = self.hidden
@@ -240,59 +221,51 @@ class MLPEstimator:
                 idx += [j * 3, j * 3 + 1, j * 3 + 2, 3 * h + j]
             for k in range(3):
                 idx += [4 * h + k * h + r for r in range(h)] + [7 * h + k]
-            self._inv = torch.argsort(torch.tensor(idx))
+            self._inv = np.argsort(idx)
         return self._inv
 
-    def _init(self, gen: torch.Generator) -> torch.Tensor:
+    def _init(self, rng: np.random.Generator) -> np.ndarray:
         h = self.hidden
         # LeCun initialisation: weights ~ N(0, 1/fan_in)
-        W1 = torch.randn(h, 3, generator=gen, dtype=torch.float64) / np.sqrt(3)
-        W2 = torch.randn(3, h, generator=gen, dtype=torch.float64) / np.sqrt(h)
-        return torch.cat(
-            [
-                W1.ravel(),
-                torch.zeros(h, dtype=torch.float64),
-                W2.ravel(),
-                torch.zeros(3, dtype=torch.float64),
-            ]
-        )
+        W1 = rng.standard_normal((h, 3)) / np.sqrt(3)
+        W2 = rng.standard_normal((3, h)) / np.sqrt(h)
+        return np.concatenate([W1.ravel(), np.zeros(h), W2.ravel(), np.zeros(3)])
 
-    def _linear_start(self, theta: torch.Tensor, Zx: torch.Tensor, Zy: torch.Tensor):
+    def _linear_start(self, theta: np.ndarray, Zx: np.ndarray, Zy: np.ndarray) -> np.ndarray:
         h = self.hidden
         W1 = theta[: 3 * h].reshape(h, 3) * 0.1
-        H = self.A * torch.tanh(self.B * (Zx @ W1.T))
-        Ha = torch.cat([H, torch.ones(len(H), 1, dtype=H.dtype)], 1)
-        sol = torch.linalg.lstsq(Ha, Zy, driver="gelsd").solution  # (h + 1, 3)
-        return torch.cat([W1.ravel(), torch.zeros(h, dtype=H.dtype), sol[:h].T.ravel(), sol[h]])
+        H = self.A * np.tanh(self.B * (Zx @ W1.T))
+        Ha = np.hstack([H, np.ones((len(H), 1))])
+        sol = np.linalg.lstsq(Ha, Zy, rcond=None)[0]  # (h + 1, 3), LAPACK's gelsd
+        return np.concatenate([W1.ravel(), np.zeros(h), sol[:h].T.ravel(), sol[h]])
 
     def fit(self, X: np.ndarray, Y: np.ndarray) -> MLPEstimator:
+        """Train on X (N, 3) -> Y (N, 3). numpy throughout (torch only for the Adam
+        comparison): a network of ~150 weights needs no tensor library, and importing torch
+        was 1.8 s of a SUN3D merge's 1.9 s MLP try (py-spy, session 31)."""
+        from threadpoolctl import threadpool_limits
+
         X, Y = _check_xy(X, Y, 10)
         t0 = time.perf_counter()
         self.x_norm_ = _Whitener().fit(X)
         self.y_norm_ = _Whitener().fit(Y)
-        Zx = torch.from_numpy(self.x_norm_.transform(X))
-        Zy = torch.from_numpy(self.y_norm_.transform(Y))
+        Zx, Zy = self.x_norm_.transform(X), self.y_norm_.transform(Y)
         rng = np.random.default_rng(self.random_state)
         perm = rng.permutation(len(X))
         n_val = int(round(self.val_fraction * len(X))) if len(X) >= 20 else 0
         val, tr = perm[:n_val], perm[n_val:]
-        gen = torch.Generator().manual_seed(self.random_state)
-        theta = self._init(gen)
+        theta = self._init(np.random.default_rng([self.random_state, 1]))
         if self.init == "linear":
             theta = self._linear_start(theta, Zx[tr], Zy[tr])
         elif self.init != "lecun":
             raise BadInput(f"Unknown init {self.init!r} (linear or lecun)")
         train = self._train_lm if self.optimizer == "lm" else self._train_adam
-        threads = torch.get_num_threads()
         # ~150 weights: the products are small (at most 5,000 x 80), and one thread beats
         # two here (measured: 2 ms against 15 ms per product when the other core is busy)
-        torch.set_num_threads(1)
-        try:
+        with threadpool_limits(1):
             theta, self.n_epochs_, self.stop_reason_ = train(
                 theta, Zx[tr], Zy[tr], Zx[val], Zy[val]
             )
-        finally:
-            torch.set_num_threads(threads)
         self.theta_ = theta
         self.fit_seconds_ = time.perf_counter() - t0
         self.affine_ = fit_affine(X, self.transform(X))
@@ -303,8 +276,8 @@ class MLPEstimator:
 
     def _train_lm(self, theta, Zx, Zy, Vx, Vy):
         mu, best_val, fails = self.mu, np.inf, 0
-        best_theta = theta.clone()
-        eye = torch.eye(len(theta), dtype=torch.float64)
+        best_theta = theta.copy()
+        eye = np.eye(len(theta))
 
         def residual(t):
             return (self._forward(t, Zx) - Zy).reshape(-1)
@@ -315,10 +288,10 @@ class MLPEstimator:
             if sse / len(e) <= self.goal:
                 return theta, epoch, "goal"
             JtJ, g = self._normal_equations(theta, Zx, e.reshape(-1, 3))
-            if float(g.abs().max()) < self.min_grad:
+            if float(np.abs(g).max()) < self.min_grad:
                 return theta, epoch, "min_grad"
             while True:
-                step = torch.linalg.solve(JtJ + mu * eye, g)
+                step = np.linalg.solve(JtJ + mu * eye, g)
                 cand = theta - step
                 e2 = residual(cand)
                 if float(e2 @ e2) < sse:
@@ -330,7 +303,7 @@ class MLPEstimator:
             if len(Vx):
                 v = self._mse(theta, Vx, Vy)
                 if v < best_val:
-                    best_val, best_theta, fails = v, theta.clone(), 0
+                    best_val, best_theta, fails = v, theta.copy(), 0
                 else:
                     fails += 1
                     if fails >= self.max_fail:
@@ -338,29 +311,30 @@ class MLPEstimator:
         return theta, self.max_epochs, "max_epochs"
 
     def _train_adam(self, theta, Zx, Zy, Vx, Vy):
-        theta = theta.clone().requires_grad_(True)
+        import torch  # the first-order comparison's autograd
+
+        Zx, Zy = torch.from_numpy(Zx), torch.from_numpy(Zy)
+        theta = torch.from_numpy(theta).requires_grad_(True)
         opt = torch.optim.Adam([theta], lr=1e-2)
-        best_val, best_theta, fails = np.inf, theta.detach().clone(), 0
+        best_val, best_theta, fails = np.inf, theta.detach().numpy().copy(), 0
         for epoch in range(1, self.max_epochs + 1):
             opt.zero_grad()
-            loss = ((self._forward(theta, Zx) - Zy) ** 2).mean()
+            loss = ((self._forward(theta, Zx, torch) - Zy) ** 2).mean()
             loss.backward()
             opt.step()
             if len(Vx) and epoch % 10 == 0:
-                v = self._mse(theta.detach(), Vx, Vy)
+                v = self._mse(theta.detach().numpy(), Vx, Vy)
                 if v < best_val:
-                    best_val, best_theta, fails = v, theta.detach().clone(), 0
+                    best_val, best_theta, fails = v, theta.detach().numpy().copy(), 0
                 else:
                     fails += 1
                     if fails >= self.max_fail:
                         return best_theta, epoch, "validation"
-        return theta.detach(), self.max_epochs, "max_epochs"
+        return theta.detach().numpy().copy(), self.max_epochs, "max_epochs"
 
     def transform(self, X: np.ndarray) -> np.ndarray:
         """Map points of shape (N, 3) from B's frame into A's."""
-        Z = torch.from_numpy(self.x_norm_.transform(np.asarray(X, np.float64)))
-        with torch.no_grad():
-            out = self._forward(self.theta_, Z).numpy()
-        return self.y_norm_.inverse(out)
+        Z = self.x_norm_.transform(np.asarray(X, np.float64))
+        return self.y_norm_.inverse(self._forward(self.theta_, Z))
 
     predict = transform
