@@ -3,7 +3,7 @@ beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
         [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR] [--scale 0.4]
-        [--frames 2] [--depth-noise d435]
+        [--frames 2] [--depth-noise d435] [--other-camera]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
 hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
@@ -29,6 +29,10 @@ as its users would, with its fixed 5 cm voxel.
 D435) would see the scene, an error growing as the depth squared, patch-correlated
 (`simulate.stereo_depth_noise`), on top of the recording's own sensor's: with `--scale 0.4`,
 the issue's RealSense desk from the data at hand.
+
+`--other-camera`: robot B of every pair as another camera recorded it
+(`simulate.other_camera`: the central three quarters of the rows, 4:3 -> 16:9, resized x
+1.325: 640 x 480 -> 848 x 477, intrinsics moved with them): a fleet of mixed sensors.
 
 `--frames K`: each pair again in K - 1 more pairs of random map frames (the recipe only in
 the first), every try a row of the table (its second column then counts tries); then the
@@ -59,7 +63,7 @@ from fleetmap.fleet.view_choice import load_view  # noqa: E402
 from fleetmap.geometry import apply  # noqa: E402
 from fleetmap.lazy import LazyModule  # noqa: E402
 from fleetmap.mapcloud import views_cloud  # noqa: E402
-from fleetmap.simulate import D435_SIGMA_1M  # noqa: E402
+from fleetmap.simulate import D435_SIGMA_1M, other_camera  # noqa: E402
 
 o3d = LazyModule("open3d")
 DATA = ROOT.parent / "shared" / "data"
@@ -162,9 +166,11 @@ def run_pair(
     rng,
     scale: float = 1.0,
     depth_noise: float = 0.0,
+    mixed: bool = False,
 ) -> dict:
     """fleetmap merge on the pair's two windows (their scene x `scale`, seen by a camera
-    with `depth_noise` more), the recipe beside it; errors at the recording's size."""
+    with `depth_noise` more; B's by another camera where `mixed`), the recipe beside it;
+    errors at the recording's size."""
     T_common = {}
     for spec in specs.values():
         T_common |= {str(f): T for f, T in spec["segments"]}
@@ -172,6 +178,8 @@ def run_pair(
     for r, (_, folder, sl) in (("A", pair["a"]), ("B", pair["b"])):
         M[r] = random_frame(rng)  # robot map <- folder's map
         cut_recording(folder, sl, work / f"p{k}" / r, M[r], scale, depth_noise)
+        if mixed and r == "B":
+            other_camera(work / f"p{k}" / r)
         dirs.append(f"{r}={work / f'p{k}' / r}")
     out = work / f"p{k}-out"
     t = time.perf_counter()
@@ -320,6 +328,11 @@ def main() -> None:
         "--keep", type=Path, help="keep every pair's windows and merge output here (to inspect)"
     )
     ap.add_argument(
+        "--other-camera",
+        action="store_true",
+        help="robot B as a 16:9 camera of 848 x 477 would record it (a fleet of mixed sensors)",
+    )
+    ap.add_argument(
         "--frames",
         type=int,
         default=1,
@@ -372,7 +385,15 @@ def main() -> None:
         for k, f, pair, gen in trials:
             name = k if f == 0 else f"{k}f{f}"
             row = run_pair(
-                name, pair, specs, work, args.seeds if f == 0 else 0, gen, args.scale, noise
+                name,
+                pair,
+                specs,
+                work,
+                args.seeds if f == 0 else 0,
+                gen,
+                args.scale,
+                noise,
+                args.other_camera,
             )
             row |= {"pair": k, "frame": f}
             rows.append(row)

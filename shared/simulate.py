@@ -225,3 +225,36 @@ def stereo_depth_noise(
     eps = (smooth + rng.standard_normal((h, w)).astype(np.float32)) / np.sqrt(2.0)
     noisy = depth_m + sigma_1m * depth_m**2 * eps
     return np.where((depth_m > 0) & (noisy > 0), noisy, 0.0)
+
+
+def other_camera(folder: Path, rows: float = 0.75, factor: float = 1.325) -> Path:
+    """A robot folder (as `dataset.cut_recording` writes it) as another camera would have
+    recorded it: the central `rows` share of every image's rows (a narrower vertical field
+    of view; 0.75 makes 4:3 images 16:9), resized by `factor` (colour by area or cubic,
+    depth nearest), and camera.json's intrinsics moved with them (640 x 480 -> 848 x 477 at
+    the defaults). For fleets of mixed sensors in benchmarks and tests. Images are written
+    anew: a hard link into the source recording is removed first, never written through."""
+    from fleetmap.dataset import read_recording
+
+    if not (0 < rows <= 1 and factor > 0):
+        raise ValueError(f"rows in (0, 1] and a positive factor, not {rows}, {factor}")
+    rec = read_recording(folder)
+    cam = (rec.file_intrinsics or rec.intrinsics).to_dict()
+    top = int(round(cam["height"] * (1 - rows) / 2))
+    bottom = cam["height"] - top
+    w, h = round(cam["width"] * factor), round((bottom - top) * factor)
+    cam["cy"] -= top
+    cam["fx"], cam["fy"] = cam["fx"] * w / cam["width"], cam["fy"] * h / (bottom - top)
+    cam["cx"] = (cam["cx"] + 0.5) * w / cam["width"] - 0.5
+    cam["cy"] = (cam["cy"] + 0.5) * h / (bottom - top) - 0.5
+    cam["width"], cam["height"] = w, h
+    for sub in ("rgb", "depth"):
+        for p in sorted((folder / sub).iterdir()):
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[top:bottom]
+            how = cv2.INTER_NEAREST if sub == "depth" else cv2.INTER_AREA
+            how = cv2.INTER_CUBIC if sub == "rgb" and factor > 1 else how
+            p.unlink()  # a hard link: the source's file stays as it is
+            if not cv2.imwrite(str(p), cv2.resize(img, (w, h), interpolation=how)):
+                raise OSError(f"cannot write {p}")
+    (folder / "camera.json").write_text(json.dumps(cam))
+    return folder

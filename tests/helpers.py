@@ -104,13 +104,9 @@ def ingest(url, robot, frames, acked, errors, stop=None) -> None:
                 errors.append((robot, r.status_code, r.text))
 
 
-def resized_recording(
-    src: Path, dst: Path, factor: float, rows: tuple[int, int] | None = None
-) -> Path:
+def resized_recording(src: Path, dst: Path, factor: float) -> Path:
     """A copy of the recording `src` at `factor` times its image size (colour cubic, depth
-    nearest, camera.json scaled with it): the same robot seen by a camera of more pixels.
-    `rows` (top, bottom): only those image rows, before the resize (cy moved with them):
-    a camera of another aspect ratio (rows 60-420 of 640 x 480: 16:9)."""
+    nearest, camera.json scaled with it): the same robot seen by a camera of more pixels."""
     import json
     import shutil
 
@@ -120,9 +116,7 @@ def resized_recording(
     for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
         shutil.copy(src / name, dst / name)
     cam = json.loads((src / "camera.json").read_text())
-    top, bottom = rows or (0, cam["height"])
-    cam["cy"] -= top
-    w, h = round(cam["width"] * factor), round((bottom - top) * factor)
+    w, h = round(cam["width"] * factor), round(cam["height"] * factor)
     for k in ("fx", "fy"):
         cam[k] *= factor
     cam["cx"], cam["cy"] = (cam["cx"] + 0.5) * factor - 0.5, (cam["cy"] + 0.5) * factor - 0.5
@@ -131,6 +125,6 @@ def resized_recording(
     for sub, how in (("rgb", cv2.INTER_CUBIC), ("depth", cv2.INTER_NEAREST)):
         (dst / sub).mkdir(exist_ok=True)
         for p in (src / sub).iterdir():
-            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[top:bottom]
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             cv2.imwrite(str(dst / sub / p.name), cv2.resize(img, (w, h), interpolation=how))
     return dst

@@ -48,21 +48,21 @@ def _near_truth(report: dict, robots) -> None:
 
 def test_cameras_of_other_sizes_and_shapes_are_merged_as_well(tmp_path):
     """The demo's robots as two other cameras would record them: alpha by a 1280x960
-    camera, bravo by a 16:9 one of 848x477 (rows 60-420, the intrinsics moved with them):
+    camera, bravo by a 16:9 one of 848x477 (`simulate.other_camera`: rows 60-420, resized):
     one fleet of two sensors, each read at the working resolution, merged near the truth.
     Read at full size, 2 x 12 such views exceeded the aligner's pixel budget and the merge
     stopped. GIST squeezes every image into a square, yet the cascade verified as many
     keyframe pairs across the two shapes as between the demo's own cameras (20 against 19
     when measured with the demo's charlie)."""
-    from fleetmap.dataset import WORK_PIXELS
+    from fleetmap.dataset import WORK_PIXELS, cut_recording
+    from fleetmap.simulate import other_camera
     from tests.helpers import resized_recording
 
     robots = ("alpha", "bravo")
-    cameras = {"alpha": (2.0, None, [1280, 960]), "bravo": (1.325, (60, 420), [848, 477])}
-    dirs = []
-    for r in robots:
-        factor, rows, _ = cameras[r]
-        dirs.append(str(resized_recording(DEMO / r, tmp_path / r, factor, rows)))
+    cameras = {"alpha": [1280, 960], "bravo": [848, 477]}
+    bravo = cut_recording(DEMO / "bravo", slice(None), tmp_path / "bravo", np.eye(4))
+    alpha = resized_recording(DEMO / "alpha", tmp_path / "alpha", 2.0)
+    dirs = [str(alpha), str(other_camera(bravo))]
     out = tmp_path / "out"
     assert main(["-q", "merge", *dirs, "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
@@ -70,7 +70,7 @@ def test_cameras_of_other_sizes_and_shapes_are_merged_as_well(tmp_path):
     for r in robots:
         info = report["robots"][r]
         w, h = info["image_size"]
-        assert info["file_image_size"] == cameras[r][2] and w * h <= WORK_PIXELS, info
+        assert info["file_image_size"] == cameras[r] and w * h <= WORK_PIXELS, info
     assert report["robots"]["alpha"]["image_size"] == [640, 480]
     _near_truth(report, robots)
 

@@ -179,3 +179,36 @@ def test_a_recording_cut_with_stereo_noise_errs_as_depth_squared(tmp_path):
     for bad in (-0.001, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="depth_noise"):
             cut_recording(DEMO_ALPHA, slice(0, 2), tmp_path / "bad", T, depth_noise=bad)
+
+
+def test_a_robot_seen_by_another_camera_back_projects_to_the_same_scene(tmp_path):
+    """`simulate.other_camera` on a cut of the demo robot: 848 x 477 images (a 16:9 camera
+    of more pixels), whose depth back-projected with the new camera.json lands on the
+    original's points (a wrong principal point or focal length would shift them by
+    centimetres); the recording the cut was hard-linked from is untouched."""
+    import hashlib
+
+    from scipy.spatial import cKDTree
+
+    from fleetmap.dataset import cut_recording
+    from fleetmap.simulate import other_camera
+
+    def points(f, intr):
+        d = load_depth(f.depth_path)  # at the file's size
+        v, u = np.nonzero(d)
+        z = d[v, u] / intr.depth_scale
+        return np.c_[(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z]
+
+    src = read_recording(DEMO_ALPHA).frames[2:4]
+    digest = {f.depth_path: hashlib.sha256(f.depth_path.read_bytes()).hexdigest() for f in src}
+    before = read_recording(cut_recording(DEMO_ALPHA, slice(2, 4), tmp_path / "a", np.eye(4)))
+    native = before.file_intrinsics or before.intrinsics
+    after = read_recording(other_camera(tmp_path / "a"))
+    cam = after.file_intrinsics
+    assert (cam.width, cam.height) == (848, 477)
+    for f, g in zip(src, after.frames, strict=True):  # the cut's own files are the new ones
+        P, Q = points(f, native), points(g, cam)
+        assert np.median(cKDTree(P).query(Q)[0]) < 0.003
+    assert all(hashlib.sha256(p.read_bytes()).hexdigest() == h for p, h in digest.items())
+    with pytest.raises(ValueError, match="rows"):
+        other_camera(tmp_path / "a", rows=0.0)
