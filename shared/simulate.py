@@ -12,7 +12,7 @@ ray casting (slab tests against every box), about 0.1 s per 640x480 frame.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -239,20 +239,17 @@ def other_camera(folder: Path, rows: float = 0.75, factor: float = 1.325) -> Pat
     if not (0 < rows <= 1 and factor > 0):
         raise ValueError(f"rows in (0, 1] and a positive factor, not {rows}, {factor}")
     rec = read_recording(folder)
-    cam = (rec.file_intrinsics or rec.intrinsics).to_dict()
-    top = int(round(cam["height"] * (1 - rows) / 2))
-    bottom = cam["height"] - top
-    w, h = round(cam["width"] * factor), round((bottom - top) * factor)
-    cam["cy"] -= top
-    cam["fx"], cam["fy"] = cam["fx"] * w / cam["width"], cam["fy"] * h / (bottom - top)
-    cam["cx"] = (cam["cx"] + 0.5) * w / cam["width"] - 0.5
-    cam["cy"] = (cam["cy"] + 0.5) * h / (bottom - top) - 0.5
-    cam["width"], cam["height"] = w, h
+    native = rec.file_intrinsics or rec.intrinsics
+    top = int(round(native.height * (1 - rows) / 2))
+    bottom = native.height - top
+    w, h = round(native.width * factor), round((bottom - top) * factor)
+    cropped = replace(native, cy=native.cy - top, height=bottom - top)
+    cam = cropped.resized(w, h).to_dict()
     for sub in ("rgb", "depth"):
         for p in sorted((folder / sub).iterdir()):
             img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[top:bottom]
-            how = cv2.INTER_NEAREST if sub == "depth" else cv2.INTER_AREA
-            how = cv2.INTER_CUBIC if sub == "rgb" and factor > 1 else how
+            how = cv2.INTER_CUBIC if factor > 1 else cv2.INTER_AREA
+            how = cv2.INTER_NEAREST if sub == "depth" else how
             p.unlink()  # a hard link: the source's file stays as it is
             if not cv2.imwrite(str(p), cv2.resize(img, (w, h), interpolation=how)):
                 raise OSError(f"cannot write {p}")
