@@ -253,11 +253,28 @@ build() {
 }
 
 # wait_healthy SERVICE...: until Docker's healthcheck says healthy
+# the address of a service's /healthz on this host (its published port), or nothing (postgres)
+healthz_url() {
+  local host=${FLEETMAP_BIND:-127.0.0.1}
+  [ "$host" = 0.0.0.0 ] && host=127.0.0.1
+  case "$1" in
+    place-db) echo "http://$host:8100/healthz" ;;
+    place-db-2) echo "http://$host:8101/healthz" ;;
+    aligner) echo "http://$host:8200/healthz" ;;
+  esac
+}
+
+# each service running and healthy: Docker's health status, or, sooner, for an HTTP service,
+# its /healthz answering on its published port (what the image's health check asks inside
+# the container; Docker runs that check every 10 s from the start, and the engine's legacy
+# builder knows no --start-interval: up and restart waited 8-10 s for nothing)
 wait_healthy() {
-  local svc cid status deadline=$((SECONDS + ${FLEETMAP_UP_TIMEOUT:-180}))
+  local CURL svc cid status url deadline=$((SECONDS + ${FLEETMAP_UP_TIMEOUT:-180}))
   for svc in "$@"; do
     cid=$(compose ps -q "$svc")
     [ -n "$cid" ] || die "$svc has no container"
+    url=$(healthz_url "$svc")
+    CURL=$(command -v curl || true)
     while :; do
       status=$(docker inspect -f '{{.State.Status}} {{if .State.Health}}{{.State.Health.Status}}{{end}}' "$cid")
       [ "$status" = "running healthy" ] && break
@@ -265,7 +282,8 @@ wait_healthy() {
         compose logs --tail 40 "$svc" >&2 || true
         die "$svc is not healthy ($status)"
       fi
-      sleep 1
+      [ -n "$url" ] && [ -n "$CURL" ] && curl -fsS -m 2 -o /dev/null "$url" 2>/dev/null && break
+      sleep 0.5
     done
     log "$svc healthy"
   done
