@@ -26,11 +26,30 @@ PY=${PYTHON:-python3.11}
 command -v "$PY" >/dev/null || PY=python3
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>/dev/null || true
-# CPU torch first: an unpinned torch would pull a multi-GB CUDA build.
 quiet() { grep -v "^WARNING: Location" || true; }
-.venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | quiet
-# (the build backend warns on every editable install of a package-dir mapping: not for users)
-PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[server,dev]" 2>&1 | quiet
+# uv (PyPI) installs what pip would, from the same places, in a quarter of the time (a clean
+# clone here: 61 -> 16 s): pip's own settings (find-links, constraints, extra indexes) are
+# handed to it. Where uv cannot be had or fails, pip does it all.
+with_uv() {
+  .venv/bin/python -m pip install -q --disable-pip-version-check uv 2>&1 | quiet
+  [ -x .venv/bin/uv ] || return 1
+  local conf; conf=$(.venv/bin/python -m pip config list 2>/dev/null || true)
+  setting() { sed -n "s/^[a-z:]*\.$1='\(.*\)'$/\1/p" <<<"$conf" | head -1; }
+  local links constraint extra cert
+  links=$(setting find-links) constraint=$(setting constraint) extra=$(setting extra-index-url)
+  cert=$(setting cert)
+  UV_FIND_LINKS=${links// /,} UV_CONSTRAINT=$constraint UV_EXTRA_INDEX_URL=$extra \
+    SSL_CERT_FILE=${cert:-${SSL_CERT_FILE:-}} UV_INDEX_STRATEGY=unsafe-best-match \
+    UV_PYTHON=.venv/bin/python \
+    bash -c '.venv/bin/uv pip install -q "torch==2.13.0" && .venv/bin/uv pip install -q -e ".[server,dev]"'
+}
+# CPU torch first: an unpinned torch would pull a multi-GB CUDA build.
+if [ -n "${FLEETMAP_NO_UV:-}" ] || ! with_uv; then
+  [ -n "${FLEETMAP_NO_UV:-}" ] || echo "install.sh: uv could not install; pip instead" >&2
+  .venv/bin/python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | quiet
+  # (the build backend warns on every editable install of a package-dir mapping: not for users)
+  PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[server,dev]" 2>&1 | quiet
+fi
 .venv/bin/python -c "import fastapi, cv2, open3d, torch, faiss, psycopg; import fleetmap.services.cli" \
   || { echo "install.sh: dependencies failed to import" >&2; exit 1; }
 echo "$want" > "$STAMP"
