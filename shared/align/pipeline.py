@@ -70,7 +70,7 @@ def align_views(
             res.reason += f"; with affine-simulated features too: {again.reason}"
     if not res.merged and p.use_icp and p.geometric_look:
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
-        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p)
+        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C)
         if third.merged:
             res = third
         else:
@@ -283,7 +283,11 @@ def _unpinned(
 
 
 def pinned_or_refused(
-    third: AlignResult, R: Correspondences, probe: np.ndarray, p: AlignParams
+    third: AlignResult,
+    R: Correspondences,
+    probe: np.ndarray,
+    p: AlignParams,
+    C: Correspondences | None = None,
 ) -> AlignResult:
     """The third look's merge, refused where the matches do not pin it (`_unpinned`), as
     the second look's, where the alignment they prefer gathers at least half `min_inliers`
@@ -295,13 +299,40 @@ def pinned_or_refused(
     active-stereo camera's noise (`simulate.stereo_depth_noise` at the D435's level, 2.6
     cm at its 2.7 m) passed free space and colour 12 cm off, while 27 matches agreed with
     an alignment 13 cm from it (10 from the truth) against 9 with it (docs/ALIGNER.md,
-    session 26)."""
+    session 26). `C`, the verified matches: refused too where they agree on an alignment
+    far from it (`_outvoted`)."""
     if not third.merged:
         return third
-    why = _unpinned(third.T_a_b, R, probe, p, p.min_inliers // 2)
+    T = third.T_a_b
+    why = _unpinned(T, R, probe, p, p.min_inliers // 2)
+    why = why or (_outvoted(T, C, probe, p) if C is not None else "")
     if why:
         third.merged, third.reason = False, f"{third.reason}, but {why}"
     return third
+
+
+def _outvoted(T: np.ndarray, C: Correspondences, probe: np.ndarray, p: AlignParams) -> str:
+    """Why the verified matches (of view pairs that passed the epipolar check) refuse a
+    merge the maps' geometry proposed, for an alignment far from it, or "": a consensus of
+    at least `min_inliers` of them (the first look's pooled hypotheses), beyond the gate's
+    rivals from T, that more of them agree with than with T, beyond the noise of the two
+    counts. The first look may refuse the right alignment on its free space (a HoloLens
+    revisit at 1.5 times its size: 119 of 235 verified matches at the truth, consistency
+    0.64), and the third look then found a basin 3.6 m away that no match agrees with,
+    with clean free space and grey levels correlating 0.57 (docs/ALIGNER.md, session 32).
+    Raw matches would not do: 12 of 494 (three times chance) agree with an alignment 4.6 m
+    from a right third-look merge. `_unpinned` looks only nearby."""
+    if len(C) < p.min_inliers:
+        return ""
+    n_T = int(np.count_nonzero(residuals(T, C.X, C.Y) < p.ransac_tol_m))
+    for h in rigid_hypotheses(C, p, p.min_inliers):
+        dt, dr = displacement_rms(h.T_a_b, T, probe), transform_error(h.T_a_b, T)[1]
+        if (dt > p.rival_m or dr > p.rival_deg) and h.support - n_T > np.sqrt(h.support + n_T):
+            return (
+                f"{h.support} verified matches agree with an alignment {dt:.2f} m / {dr:.0f} "
+                f"deg away, {n_T} with it (within {p.ransac_tol_m:.2f} m)"
+            )
+    return ""
 
 
 def _match_gate(

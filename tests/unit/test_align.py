@@ -230,3 +230,41 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
     assert pinned_or_refused(third(slid), matches(3), probe, p).merged
     refused = AlignResult(False, "no alignment passes")
     assert pinned_or_refused(refused, R, probe, p).reason == "no alignment passes"
+
+
+def test_a_third_look_merge_far_from_where_the_verified_matches_agree_is_refused():
+    """`pipeline.pinned_or_refused` with the verified matches: a third-look merge 3.6 m
+    and 180 deg from the alignment 119 of 235 verified matches agree on (the truth; a
+    HoloLens revisit at 1.5 times its size, where the first look refused the truth on its
+    free space) is refused, naming the counts; at the truth it stands; and verified matches
+    without a consensus of `min_inliers` (11 right among random ones) leave a merge the
+    geometry found standing, as raw matches agreeing by chance do."""
+    from fleetmap.align.pipeline import pinned_or_refused
+    from fleetmap.align.types import AlignResult
+    from fleetmap.correspondences import Correspondences
+    from fleetmap.geometry import apply
+
+    rng, p = np.random.default_rng(5), AlignParams()
+    T_true = np.eye(4)
+    T_true[:3, 3] = [1.0, -0.5, 0.3]
+    far = np.diag([-1.0, -1.0, 1.0, 1.0])  # half a turn about the vertical
+    far[:3, 3] = [4.0, 2.0, 0.0]
+    box = np.array([3.0, 2.0, 2.0])
+    probe = rng.uniform(0, 1, (300, 3)) * box
+
+    def verified(right: int, n: int = 235) -> Correspondences:
+        X = rng.uniform(0, 1, (n, 3)) * box
+        Y = rng.uniform(-2, 2, (n, 3)) * box
+        Y[:right] = apply(T_true, X[:right]) + rng.normal(0, 0.01, (right, 3))
+        return Correspondences(X, Y, rng.integers(0, 12, n))
+
+    def third(T):
+        return AlignResult(True, "passed on the maps' geometry and colour", T.copy(), "fpfh+icp")
+
+    raw = verified(0, 500)  # no raw match pulls it anywhere nearby
+    C = verified(119)
+    out = pinned_or_refused(third(far), raw, probe, p, C)
+    assert not out.merged and "verified matches agree with an alignment" in out.reason, out.reason
+    assert pinned_or_refused(third(T_true), raw, probe, p, C).merged
+    assert pinned_or_refused(third(far), raw, probe, p, verified(11)).merged
+    assert pinned_or_refused(third(far), raw, probe, p).merged  # without them: as before
