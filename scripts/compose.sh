@@ -252,7 +252,6 @@ build() {
   log "images built in $((SECONDS - t0)) s"
 }
 
-# wait_healthy SERVICE...: until Docker's healthcheck says healthy
 # the address of a service's /healthz on this host (its published port), or nothing (postgres)
 healthz_url() {
   local host=${FLEETMAP_BIND:-127.0.0.1}
@@ -264,10 +263,11 @@ healthz_url() {
   esac
 }
 
-# each service running and healthy: Docker's health status, or, sooner, for an HTTP service,
-# its /healthz answering on its published port (what the image's health check asks inside
-# the container; Docker runs that check every 10 s from the start, and the engine's legacy
-# builder knows no --start-interval: up and restart waited 8-10 s for nothing)
+# wait_healthy SERVICE...: each one running and healthy: Docker's health status, or,
+# sooner, for an HTTP service, its /healthz answering on its published port (what the
+# image's health check asks inside the container; Docker runs that check every 10 s from the
+# start, and the engine's legacy builder knows no --start-interval: up and restart waited
+# 8-10 s for nothing)
 wait_healthy() {
   local CURL svc cid status url deadline=$((SECONDS + ${FLEETMAP_UP_TIMEOUT:-180}))
   for svc in "$@"; do
