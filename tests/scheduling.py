@@ -70,7 +70,7 @@ COST_S = {
     "tests/e2e/test_live_map.py": 85,
     "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 48,
     APART[2]: 47,
-    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 36,
+    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
     "tests/e2e/test_demo_fleet.py": 33,
     "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 32,
     "tests/e2e/test_recall.py::test_two_places_at_desk_scale_stay_unmerged": 29,
