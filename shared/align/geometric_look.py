@@ -202,13 +202,13 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         return AlignResult(False, f"no alignment passes: at best {best.why_not(look, p)}")
     win, probe = passing[0], probe_points(clouds[1].at(voxel))
     for j in passing[1:]:  # basins a voxel apart may refine into one place: rivals are far
-        far = _slid_away(j.T_a_b, win.T_a_b, probe, p)
+        far = beyond_rivals(j.T_a_b, win.T_a_b, probe, p)
         if far:
             return AlignResult(False, f"ambiguous: another alignment {far} away passes too")
     h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
-        slid = _slid_away(h.T_a_b, win.T_a_b, probe, p)
+        slid = beyond_rivals(h.T_a_b, win.T_a_b, probe, p)
         if slid:  # unless it slid as far as a rival: no basin holds there
             return AlignResult(
                 False, f"the best alignment does not hold: refined, it slid {slid} to "
@@ -228,7 +228,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     )
 
 
-def _slid_away(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
+def beyond_rivals(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
     """How far T lies from T0 ("0.80 m / 14 deg") where that is beyond the gate's rivals
     (`rival_m`, `rival_deg`), else "": a passing rival, or a refinement that slid. A
     HoloLens lounge window merged with a SUN3D study room (other map frames) on a basin at

@@ -10,6 +10,7 @@ import logging
 import numpy as np
 
 from fleetmap.align.types import AlignParams, Hypothesis
+from fleetmap.align.validation import outnumbers
 from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import apply, displacement_rms, invert, residuals, transform_error
 from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
@@ -206,7 +207,7 @@ def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p:
     half = [int(np.count_nonzero(residuals(T, R.X, R.Y) < p.ransac_tol_m / 2))
             for T, _ in cands]  # fmt: skip
     top = max(half)
-    tied = [k for k, n in enumerate(half) if top - n <= np.sqrt(top + n)]
+    tied = [k for k, n in enumerate(half) if not outnumbers(top, n)]
     rest = sorted((k for k in range(len(cands)) if k not in tied), key=lambda k: -half[k])
     tied.sort(key=lambda k: surface_rmse(cb1, ca1, cands[k][0], p.voxel_m))
     return [cands[k] for k in tied + rest]

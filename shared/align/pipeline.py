@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from fleetmap.align.geometric_look import geometric_look, grey_correlation
+from fleetmap.align.geometric_look import beyond_rivals, geometric_look, grey_correlation
 from fleetmap.align.hypotheses import (
     choose,
     pair_hypotheses,
@@ -34,7 +34,7 @@ from fleetmap.align.hypotheses import (
 )
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
-from fleetmap.align.validation import better_nearby, holdout_residual, spread_m
+from fleetmap.align.validation import better_nearby, holdout_residual, outnumbers, spread_m
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
@@ -326,11 +326,11 @@ def _outvoted(T: np.ndarray, C: Correspondences, probe: np.ndarray, p: AlignPara
         return ""
     n_T = int(np.count_nonzero(residuals(T, C.X, C.Y) < p.ransac_tol_m))
     for h in rigid_hypotheses(C, p, p.min_inliers):
-        dt, dr = displacement_rms(h.T_a_b, T, probe), transform_error(h.T_a_b, T)[1]
-        if (dt > p.rival_m or dr > p.rival_deg) and h.support - n_T > np.sqrt(h.support + n_T):
+        far = beyond_rivals(h.T_a_b, T, probe, p)
+        if far and outnumbers(h.support, n_T):
             return (
-                f"{h.support} verified matches agree with an alignment {dt:.2f} m / {dr:.0f} "
-                f"deg away, {n_T} with it (within {p.ransac_tol_m:.2f} m)"
+                f"{h.support} verified matches agree with an alignment {far} away, {n_T} with "
+                f"it (within {p.ransac_tol_m:.2f} m)"
             )
     return ""
 

@@ -69,6 +69,12 @@ def spread_m(points: np.ndarray) -> float:
     return float(np.sqrt(max(w[-2], 0.0)))
 
 
+def outnumbers(n: int, m: int) -> bool:
+    """Whether count n exceeds count m beyond the noise of their difference (the square
+    root of their sum): how the gate compares two counts of agreeing matches."""
+    return n - m > np.sqrt(n + m)
+
+
 def better_nearby(
     T: np.ndarray,
     X: np.ndarray,
@@ -115,6 +121,6 @@ def better_nearby(
     if displacement_rms(refit, T, probe) <= reach:
         best_T = refit
     n = int(np.count_nonzero(residuals(best_T, X, Y) < tol))
-    if displacement_rms(best_T, T, probe) <= tol or n - n_T <= np.sqrt(n + n_T):
+    if displacement_rms(best_T, T, probe) <= tol or not outnumbers(n, n_T):
         return None
     return best_T, n, n_T
