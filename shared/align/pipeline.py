@@ -271,7 +271,7 @@ def _unpinned(
 ) -> str:
     """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
     alignment nearby, and at least `floor`), or ""."""
-    found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
+    found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m, cell=p.voxel_m)
     if found is None or found[1] < floor:
         return ""
     T_near, n, n_T = found
