@@ -76,16 +76,27 @@ def outnumbers(n: int, m: int) -> bool:
 
 
 def distinct(X: np.ndarray, Y: np.ndarray, agree: np.ndarray, cell: float) -> int:
-    """How many of the matches `agree` (a mask) are distinct evidence: those whose points
-    share a cell of `cell` metres on both sides count once (`cell` 0: every match). A
-    blob's nested MSER regions each give a keypoint a few millimetres from the others, and
-    each its match: on a HoloLens revisit 8 raw matches "agreeing" with an alignment 22 cm
-    from the truth were four places, three of them matched two or three times each
-    (docs/ALIGNER.md, session 33)."""
-    if cell <= 0 or not agree.any():
-        return int(np.count_nonzero(agree))
-    cells = np.floor(np.hstack([X[agree], Y[agree]]) / cell).astype(np.int64)
-    return len(np.unique(cells, axis=0))
+    """How many of the matches `agree` (a mask) are distinct evidence: matches whose points
+    lie within `cell` metres of a counted one's on both sides (their six coordinates
+    joined; greedily, so a surface's keypoints a cell apart still count each) are that
+    one's (`cell` 0: every match). A blob's nested MSER regions each give
+    a keypoint a few millimetres from the others, and each its match: on a HoloLens revisit
+    8 raw matches "agreeing" with an alignment 22 cm from the truth were four places, three
+    of them matched two or three times each (docs/ALIGNER.md, session 33)."""
+    n = int(np.count_nonzero(agree))
+    if cell <= 0 or n < 2:
+        return n
+    from scipy.spatial import cKDTree
+
+    Z = np.hstack([X[agree], Y[agree]])
+    near = cKDTree(Z).query_ball_point(Z, cell)
+    taken = np.zeros(n, bool)
+    kept = 0
+    for k in range(n):  # greedy, so a chain of neighbours is not one place
+        if not taken[k]:
+            kept += 1
+            taken[near[k]] = True
+    return kept
 
 
 def better_nearby(

@@ -232,6 +232,49 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
     assert pinned_or_refused(refused, R, probe, p).reason == "no alignment passes"
 
 
+def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
+    """`validation.better_nearby` at a cell: a HoloLens revisit's right third-look merge
+    (3.5 cm) had 3 raw matches at it and 8 at an alignment 22 cm away, which were four
+    places (a blob's nested MSER regions give a keypoint each, millimetres apart). Counted
+    once per place, 4 against 3 is no preference and the merge stands; eight places
+    against 3 still refuse it."""
+    from fleetmap.align.pipeline import pinned_or_refused
+    from fleetmap.align.types import AlignResult
+    from fleetmap.align.validation import distinct
+    from fleetmap.correspondences import Correspondences
+    from fleetmap.geometry import apply
+
+    rng, p = np.random.default_rng(7), AlignParams()
+    T_true = np.eye(4)
+    T_true[:3, 3] = [1.0, -0.5, 0.3]
+    slid = T_true.copy()
+    slid[:3, 3] += [0.22, 0.0, 0.0]
+    box = np.array([3.0, 2.0, 2.0])
+    probe = rng.uniform(0, 1, (300, 3)) * box
+
+    def matches(places: list[int]) -> Correspondences:
+        X = rng.uniform(0, 1, (1400, 3)) * box
+        Y = rng.uniform(-2, 2, (1400, 3)) * box
+        Y[:3] = apply(T_true, X[:3]) + rng.normal(0, 0.005, (3, 3))
+        k = 3
+        for size in places:  # each place matched `size` times, its keypoints 2 mm apart
+            centre = rng.uniform(0, 1, 3) * box
+            X[k : k + size] = centre + rng.normal(0, 0.002, (size, 3))
+            Y[k : k + size] = apply(slid, X[k : k + size]) + rng.normal(0, 0.002, (size, 3))
+            k += size
+        return Correspondences(X, Y, rng.integers(0, 170, 1400))
+
+    def third(T):
+        return AlignResult(True, "passed on the maps' geometry and colour", T.copy(), "fpfh+icp")
+
+    R = matches([1, 3, 3, 1])
+    assert distinct(R.X, R.Y, np.arange(1400) < 11, p.voxel_m) == 3 + 4
+    assert distinct(R.X, R.Y, np.arange(1400) < 11, 0.0) == 11
+    assert pinned_or_refused(third(T_true), R, probe, p).merged
+    out = pinned_or_refused(third(T_true), matches([1] * 8), probe, p)
+    assert not out.merged and "(8 against 3" in out.reason, out.reason
+
+
 def test_a_third_look_merge_far_from_where_the_verified_matches_agree_is_refused():
     """`pipeline.pinned_or_refused` with the verified matches: a third-look merge 3.6 m
     and 180 deg from the alignment 119 of 235 verified matches agree on (the truth; a
