@@ -34,7 +34,13 @@ from fleetmap.align.hypotheses import (
 )
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
-from fleetmap.align.validation import better_nearby, holdout_residual, outnumbers, spread_m
+from fleetmap.align.validation import (
+    better_nearby,
+    distinct,
+    holdout_residual,
+    outnumbers,
+    spread_m,
+)
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
@@ -270,11 +276,18 @@ def _unpinned(
     T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams, floor: int = 0
 ) -> str:
     """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
-    alignment nearby, and at least `floor`), or ""."""
-    found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m, cell=p.voxel_m)
-    if found is None or found[1] < floor:
+    alignment nearby), or "". With a `floor`, those that agree there must be at least that
+    many distinct places (`validation.distinct` at the voxel): a handful of places, each
+    matched several times, is still a handful."""
+    found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
+    if found is None:
         return ""
     T_near, n, n_T = found
+    if (
+        floor
+        and distinct(R.X, R.Y, residuals(T_near, R.X, R.Y) < p.ransac_tol_m, p.voxel_m) < floor
+    ):
+        return ""
     return (
         f"the matches agree better with an alignment {displacement_rms(T_near, T, probe):.2f} m "
         f"away ({n} against {n_T} within {p.ransac_tol_m:.2f} m): the maps' geometry alone "
@@ -291,7 +304,9 @@ def pinned_or_refused(
 ) -> AlignResult:
     """The third look's merge, refused where the matches do not pin it (`_unpinned`), as
     the second look's, where the alignment they prefer gathers at least half `min_inliers`
-    (what a merge the geometry decides needs of them, `_align`): a handful agreeing by
+    distinct places (what a merge the geometry decides needs of them, `_align`; a right
+    HoloLens merge, 3.5 cm, was refused by 8 matches at four places, session 33): a
+    handful agreeing by
     chance, among thousands of raw matches on a few surfaces, does not overrule the
     geometry. Right third-look merges of the recall bench (1-15 of 1,400-2,200 raw matches
     at the truth) had no alignment nearby that more agree with. Where the depth is noisy

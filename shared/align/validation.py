@@ -107,13 +107,11 @@ def better_nearby(
     tol: float,
     reach: float,
     tries: int = 600,
-    cell: float = 0.0,
 ) -> tuple[np.ndarray, int, int] | None:
     """An alignment between `tol` and `reach` (RMS over `probe`, B's points) from T that
     more matches (X -> Y) agree with, within `tol`, than agree with T, beyond the noise of
     the two counts (their difference over the square root of their sum, as
-    `hypotheses.ranked`): (T_near, its count, T's count), or None. Both counts are of
-    distinct evidence (`distinct` at `cell`).
+    `hypotheses.ranked`): (T_near, its count, T's count), or None.
 
     Where the matches pin the alignment, none is found: right merges of the recall bench
     (SUN3D, HoloLens, TUM desk) had none further than 5 cm. Where only the maps' geometry
@@ -121,7 +119,7 @@ def better_nearby(
     SUN3D windows merged 10-15 cm from the truth had 77-124 matches agreeing with an
     alignment 15-35 cm away against 31-73 for the merge (docs/ALIGNER.md)."""
     r = residuals(T, X, Y)
-    n_T = distinct(X, Y, r < tol, cell)
+    n_T = int(np.count_nonzero(r < tol))
     near = np.flatnonzero(r < reach + tol)
     if len(near) < 3:
         return None
@@ -146,7 +144,7 @@ def better_nearby(
     refit = kabsch(Xn[agree], Yn[agree]) if agree.sum() >= 3 else best_T
     if displacement_rms(refit, T, probe) <= reach:
         best_T = refit
-    n = distinct(X, Y, residuals(best_T, X, Y) < tol, cell)
+    n = int(np.count_nonzero(residuals(best_T, X, Y) < tol))
     if displacement_rms(best_T, T, probe) <= tol or not outnumbers(n, n_T):
         return None
     return best_T, n, n_T

@@ -233,11 +233,11 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
 
 
 def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
-    """`validation.better_nearby` at a cell: a HoloLens revisit's right third-look merge
-    (3.5 cm) had 3 raw matches at it and 8 at an alignment 22 cm away, which were four
-    places (a blob's nested MSER regions give a keypoint each, millimetres apart). Counted
-    once per place, 4 against 3 is no preference and the merge stands; eight places
-    against 3 still refuse it."""
+    """`pipeline.pinned_or_refused`'s floor in places (`validation.distinct`): a HoloLens
+    revisit's right third-look merge (3.5 cm) had 3 raw matches at it and 8 at an
+    alignment 22 cm away, which were four places (each matched one to three times, the
+    keypoints millimetres apart). Four places are under the floor (half `min_inliers`) and
+    the merge stands; eight places against 3 still refuse it."""
     from fleetmap.align.pipeline import pinned_or_refused
     from fleetmap.align.types import AlignResult
     from fleetmap.align.validation import distinct
