@@ -69,6 +69,7 @@ COST_S = {
     "tests/e2e/test_fleet_drift.py": 105,
     "tests/e2e/test_live_map.py": 85,
     "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 48,
+    "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 30,
     APART[2]: 47,
     "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
     "tests/e2e/test_demo_fleet.py": 33,
