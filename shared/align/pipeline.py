@@ -306,9 +306,8 @@ def pinned_or_refused(
     the second look's, where the alignment they prefer gathers at least half `min_inliers`
     distinct places (what a merge the geometry decides needs of them, `_align`; a right
     HoloLens merge, 3.5 cm, was refused by 8 matches at four places, session 33): a
-    handful agreeing by
-    chance, among thousands of raw matches on a few surfaces, does not overrule the
-    geometry. Right third-look merges of the recall bench (1-15 of 1,400-2,200 raw matches
+    handful agreeing by chance, among thousands of raw matches on a few surfaces, does not
+    overrule the geometry. Right third-look merges of the recall bench (1-15 of 1,400-2,200 raw matches
     at the truth) had no alignment nearby that more agree with. Where the depth is noisy
     the geometry slides along its planes: a HoloLens pair (35% shared) seen through an
     active-stereo camera's noise (`simulate.stereo_depth_noise` at the D435's level, 2.6

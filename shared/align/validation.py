@@ -76,13 +76,13 @@ def outnumbers(n: int, m: int) -> bool:
 
 
 def distinct(X: np.ndarray, Y: np.ndarray, agree: np.ndarray, cell: float) -> int:
-    """How many of the matches `agree` (a mask) are distinct evidence: matches whose points
+    """How many of the matches `agree` (a mask) are distinct places: a match whose points
     lie within `cell` metres of a counted one's on both sides (their six coordinates
-    joined; greedily, so a surface's keypoints a cell apart still count each) are that
-    one's (`cell` 0: every match). A blob's nested MSER regions each give
-    a keypoint a few millimetres from the others, and each its match: on a HoloLens revisit
-    8 raw matches "agreeing" with an alignment 22 cm from the truth were four places, three
-    of them matched two or three times each (docs/ALIGNER.md, session 33)."""
+    joined) is that one's, taken greedily, so a surface's keypoints a cell apart still
+    count each (`cell` 0: every match). One point of the scene can give several keypoints
+    millimetres apart (a blob's nested MSER regions, ASIFT's tilts), each with its match:
+    on a HoloLens revisit 8 raw matches agreeing with an alignment 22 cm from the truth were
+    four places, three of them matched two or three times (docs/ALIGNER.md, session 33)."""
     n = int(np.count_nonzero(agree))
     if cell <= 0 or n < 2:
         return n
