@@ -184,9 +184,9 @@ def test_room_a_handful_of_places_pull_elsewhere_is_merged(hololens, tmp_path):
     both image looks refuse, the third finds the truth (free space firm 0.95-0.97, grey
     levels 0.60-0.63), and through session 32 the pinning refused it (recall seeds 29, 32)
     because 8 raw matches agreed with an alignment 24 cm away against 3 at the merge. Those
-    8 are four places, matched two or three times each; the floor counts places now
-    (`validation.distinct`). In four pairs of random map frames refused at 83a0ec6, merged
-    at 4.3-4.5 cm / 0.3 deg since. Within 5 cm / 2 deg of the truth."""
+    8 are four places, three of them matched two or three times; the floor counts places
+    now (`validation.distinct`). In four pairs of random map frames (seeds 61-67) refused
+    at 83a0ec6, merged at 4.3-4.5 cm / 0.3 deg since. Within 5 cm / 2 deg of the truth."""
     fit, err = hololens_windows(tmp_path, hololens, (60, 120), (90, 150), 61)
     merged_near_truth(fit, err, "fpfh")
 
