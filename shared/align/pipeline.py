@@ -302,14 +302,14 @@ def pinned_or_refused(
     p: AlignParams,
     C: Correspondences | None = None,
 ) -> AlignResult:
-    """The third look's merge, refused where the matches do not pin it (`_unpinned`), as the second
-    look's, where the alignment they prefer gathers at least half `min_inliers` distinct
-    places (what a merge the geometry decides needs of them, `_align`; a right HoloLens
-    merge, 3.5 cm, was refused by 8 matches at four places, session 33): a handful agreeing
-    by chance, among thousands of raw matches on a few surfaces, does not overrule the
-    geometry. Right third-look merges of the recall bench (1-15 of 1,400-2,200 raw matches
-    at the truth) had no alignment nearby that more agree with. Where the depth is noisy the
-    geometry slides along its planes: a HoloLens pair (35% shared) seen through an
+    """The third look's merge, refused where the matches do not pin it (`_unpinned`), as the
+    second look's, where the alignment they prefer gathers at least half `min_inliers`
+    distinct places (what a merge the geometry decides needs of them, `_align`; a right
+    HoloLens merge, 3.5 cm, was refused by 8 matches at four places, session 33): a handful
+    agreeing by chance, among thousands of raw matches on a few surfaces, does not overrule
+    the geometry. Right third-look merges of the recall bench (1-15 of 1,400-2,200 raw
+    matches at the truth) had no alignment nearby that more agree with. Where the depth is
+    noisy the geometry slides along its planes: a HoloLens pair (35% shared) seen through an
     active-stereo camera's noise (`simulate.stereo_depth_noise` at the D435's level, 2.6 cm
     at its 2.7 m) passed free space and colour 12 cm off, while 27 matches agreed with an
     alignment 13 cm from it (10 from the truth) against 9 with it (docs/ALIGNER.md, session
