@@ -101,7 +101,7 @@ class AlignParams:
     # (pipeline._colour_gate; right merges 0.46-0.94, maps that bend the lowest)
     min_colour_correlation: float = 0.3
     # refused pairs looked at again with ASIFT (second_look.py); its merges must be pinned
-    # by the matches (pipeline._unpinned: without, SUN3D windows merged 11-15 cm off)
+    # by the matches (pinning.unpinned: without, SUN3D windows merged 11-15 cm off)
     second_look: bool = True
     second: SecondLook = SecondLook()
     # refused by both: the maps' geometry proposes, free space and colour decide

@@ -141,7 +141,7 @@ def test_a_slide_along_the_rooms_planes_is_not_a_merge(sun3d, tmp_path, monkeypa
     where the free space stays consistent (firm 0.99, so the geometry decided alone), while
     the matches agreed better with an alignment 24 cm away (24 against 7). A merge the
     geometry carried alone, with fewer matches at it than a merge needs, must be pinned by
-    them too (`pipeline._carried`, session 23). Merged within 5 cm of the truth, or
+    them too (`pinning.carried`, session 23). Merged within 5 cm of the truth, or
     refused. The wrong merge was the first look's: the later looks, which refuse this pair
     too (ASIFT's basin is the same and unpinned: `test_second_look_merges_only_what_its_
     matches_pin`), are off here (84 -> 13 s in the suite)."""

@@ -194,12 +194,12 @@ def test_a_nearer_scene_shrinks_every_length_and_nothing_else():
 
 
 def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
-    """`pipeline.pinned_or_refused`: a third-look merge 13 cm off, where 25 of 1,500 raw
+    """`pinning.pinned_or_refused`: a third-look merge 13 cm off, where 25 of 1,500 raw
     matches agree with an alignment nearby (the truth) and none with it, is refused, naming
     both counts; the same merge at the truth stands; and where the matches say almost
     nothing (3 right ones among 1,500 random, under half `min_inliers`), a merge the
     geometry found stands (the look is for pairs no matcher ties)."""
-    from fleetmap.align.pipeline import pinned_or_refused
+    from fleetmap.align.pinning import pinned_or_refused
     from fleetmap.align.types import AlignResult
     from fleetmap.correspondences import Correspondences
     from fleetmap.geometry import apply
@@ -233,12 +233,12 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
 
 
 def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
-    """`pipeline.pinned_or_refused`'s floor in places (`validation.distinct`): a HoloLens
+    """`pinning.pinned_or_refused`'s floor in places (`validation.distinct`): a HoloLens
     revisit's right third-look merge (3.5 cm) had 3 raw matches at it and 8 at an
     alignment 22 cm away, which were four places (each matched one to three times, the
     keypoints millimetres apart). Four places are under the floor (half `min_inliers`) and
     the merge stands; eight places against 3 still refuse it."""
-    from fleetmap.align.pipeline import pinned_or_refused
+    from fleetmap.align.pinning import pinned_or_refused
     from fleetmap.align.types import AlignResult
     from fleetmap.align.validation import distinct
     from fleetmap.correspondences import Correspondences
@@ -276,13 +276,13 @@ def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
 
 
 def test_a_third_look_merge_far_from_where_the_verified_matches_agree_is_refused():
-    """`pipeline.pinned_or_refused` with the verified matches: a third-look merge 3.6 m
+    """`pinning.pinned_or_refused` with the verified matches: a third-look merge 3.6 m
     and 180 deg from the alignment 119 of 235 verified matches agree on (the truth; a
     HoloLens revisit at 1.5 times its size, where the first look refused the truth on its
     free space) is refused, naming the counts; at the truth it stands; and verified matches
     without a consensus of `min_inliers` (11 right among random ones) leave a merge the
     geometry found standing, as raw matches agreeing by chance do."""
-    from fleetmap.align.pipeline import pinned_or_refused
+    from fleetmap.align.pinning import pinned_or_refused
     from fleetmap.align.types import AlignResult
     from fleetmap.correspondences import Correspondences
     from fleetmap.geometry import apply
