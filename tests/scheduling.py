@@ -70,6 +70,7 @@ COST_S = {
     "tests/e2e/test_live_map.py": 85,
     "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 48,
     "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 30,
+    "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 30,
     APART[2]: 47,
     "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
     "tests/e2e/test_demo_fleet.py": 33,

@@ -169,13 +169,37 @@ def judge(T: np.ndarray, clouds, seen, voxel: float) -> Judged:
     )
 
 
+def look_voxel(p: AlignParams, depth: float) -> float:
+    """The look's FPFH voxel: `voxel_rel` of the views' median depth, one to five of the
+    gate's voxels."""
+    return float(np.clip(p.geometric.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
+
+
+def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: float) -> bool:
+    """Whether the maps' geometry refuses an alignment near a merge T, and leads back from
+    it to T: its firm free-space consistency (`judge`) under the look's bar, and its
+    refinement (`refine`, point-to-plane ICP at half a voxel) within the map's own voxel
+    (`voxel_m`) of T. Where the surfaces slide along each other (what the matches' pinning
+    guards against), an alignment along the slide keeps the free space and ICP leaves it
+    where it is: a HoloLens pair through a D435's noise merged 11.8 cm off, the matches
+    preferring an alignment 13 cm away, firm 0.89, that ICP takes to 7 cm from the merge
+    (4.6 cm from the truth); SUN3D windows, firm 0.82, ICP 21 cm from the merge. At a right
+    merge (HoloLens, 18% shared, 2.9 cm) the matches preferred one 21 cm off at firm 0.55,
+    whose refinement lands 7 mm from the merge (docs/ALIGNER.md, session 34)."""
+    voxel, clouds = look_voxel(p, depth), pair.clouds()
+    seen = tuple([SeenDepth(v) for v in views] for views in pair.views)
+    if min(judge(T_near, clouds, seen, voxel).firm) >= p.geometric.min_consistency:
+        return False
+    probe = probe_points(clouds[1].at(voxel))
+    return displacement_rms(refine(T_near, clouds, voxel), T, probe) < p.voxel_m
+
+
 def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     """Align the pair's views on their fused depth alone (`basins`), judged by `judge`, with
     `p.geometric`'s settings. `pair`: the pipeline's `_PairClouds`; R: the raw matches
     (they choose between the winner's refinements where they can tell, as in
     `hypotheses.choose`)."""
-    look = p.geometric
-    voxel = float(np.clip(look.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
+    look, voxel = p.geometric, look_voxel(p, depth)
     clouds = pair.clouds()
     few = min(len(c.at(voxel).points) for c in clouds)
     if few < MIN_POINTS:

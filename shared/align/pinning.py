@@ -4,10 +4,14 @@ A merge that rests on the maps' geometry (the first look's where the free space 
 alone, the second look's, the third look's) can slide along surfaces that slide along each
 other while the free space stays consistent. The raw matches say where they agree: a merge
 is refused where they prefer an alignment nearby (`unpinned`) or, for the third look, where
-the verified matches agree on one far away (`outvoted`).
+the verified matches agree on one far away (`outvoted`); unless, for the third look, the
+place they prefer nearby is one the maps' geometry itself refuses and leaves for the merge
+(`geometric_look.falls_back`).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -17,6 +21,10 @@ from fleetmap.align.types import AlignParams, AlignResult
 from fleetmap.align.validation import better_nearby, distinct, outnumbers
 from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import displacement_rms, residuals
+
+#: `falls_back(T_near, T)`: whether the maps' geometry refuses the alignment the matches
+#: prefer near a merge T and leads back from it to T
+FallsBack = Callable[[np.ndarray, np.ndarray], bool]
 
 
 def carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -> bool:
@@ -32,12 +40,18 @@ def carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -
 
 
 def unpinned(
-    T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams, floor: int = 0
+    T: np.ndarray,
+    R: Correspondences,
+    probe: np.ndarray,
+    p: AlignParams,
+    floor: int = 0,
+    back: FallsBack | None = None,
 ) -> str:
     """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
     alignment nearby), or "". With a `floor`, those that agree there must be at least that
     many distinct places (`validation.distinct` at the voxel): a handful of places, each
-    matched several times, is still a handful."""
+    matched several times, is still a handful. With `back`, the alignment they prefer must
+    not be one the maps' geometry refuses and leads back from to T."""
     found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
     if found is None:
         return ""
@@ -46,6 +60,8 @@ def unpinned(
         floor
         and distinct(R.X, R.Y, residuals(T_near, R.X, R.Y) < p.ransac_tol_m, p.voxel_m) < floor
     ):
+        return ""
+    if back is not None and back(T_near, T):
         return ""
     return (
         f"the matches agree better with an alignment {displacement_rms(T_near, T, probe):.2f} m "
@@ -60,6 +76,7 @@ def pinned_or_refused(
     probe: np.ndarray,
     p: AlignParams,
     C: Correspondences | None = None,
+    back: FallsBack | None = None,
 ) -> AlignResult:
     """The third look's merge, refused where the matches do not pin it (`unpinned`), as the
     second look's, where the alignment they prefer gathers at least half `min_inliers`
@@ -73,11 +90,16 @@ def pinned_or_refused(
     cm at its 2.7 m) passed free space and colour 12 cm off, while 27 matches agreed with an
     alignment 13 cm from it (10 from the truth) against 9 with it (docs/ALIGNER.md, session
     26). `C`, the verified matches: refused too where they agree on an alignment far from it
-    (`outvoted`)."""
+    (`outvoted`). `back` (`geometric_look.falls_back` on the pair): a pull nearby that the
+    maps' geometry refuses, and leads back from to the merge, does not refuse it (a HoloLens
+    pair, 18% shared, merged about 3 cm from the truth, was refused through session 33 by 12
+    raw matches at seven places agreeing with an alignment 21 cm off, whose firm free space
+    is 0.55 and from which ICP returns to within 7 mm of the merge; docs/ALIGNER.md, session
+    34)."""
     if not third.merged:
         return third
     T = third.T_a_b
-    why = unpinned(T, R, probe, p, p.min_inliers // 2)
+    why = unpinned(T, R, probe, p, p.min_inliers // 2, back)
     why = why or (outvoted(T, C, probe, p) if C is not None else "")
     if why:
         third.merged, third.reason = False, f"{third.reason}, but {why}"

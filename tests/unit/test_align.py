@@ -232,6 +232,42 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
     assert pinned_or_refused(refused, R, probe, p).reason == "no alignment passes"
 
 
+def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
+    """`pinning.pinned_or_refused`'s `back` (`geometric_look.falls_back` in the pipeline):
+    the alignment the matches prefer near a third-look merge is handed to it, and where the
+    maps' geometry refuses that alignment and leads back to the merge, the merge stands;
+    where not, it is refused as before (the matches and merge of the test above)."""
+    from fleetmap.align.pinning import pinned_or_refused
+    from fleetmap.align.types import AlignResult
+    from fleetmap.correspondences import Correspondences
+    from fleetmap.geometry import apply, displacement_rms
+
+    rng, p = np.random.default_rng(3), AlignParams()
+    T_true = np.eye(4)
+    T_true[:3, 3] = [1.0, -0.5, 0.3]
+    slid = T_true.copy()
+    slid[:3, 3] += [0.13, 0.0, 0.0]
+    box = np.array([3.0, 2.0, 2.0])
+    probe = rng.uniform(0, 1, (300, 3)) * box
+    X = rng.uniform(0, 1, (1500, 3)) * box
+    Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
+    Y[:25] = apply(T_true, X[:25]) + rng.normal(0, 0.01, (25, 3))
+    R = Correspondences(X, Y, np.zeros(1500, int))
+    asked = []
+
+    def back(T_near, T):
+        asked.append((displacement_rms(T_near, T_true, probe), displacement_rms(T, slid, probe)))
+        return True
+
+    def third():
+        return AlignResult(True, "passed on the maps' geometry", slid.copy(), "fpfh+icp")
+
+    assert pinned_or_refused(third(), R, probe, p, back=back).merged
+    assert len(asked) == 1 and asked[0][0] < 0.02 and asked[0][1] == 0, asked
+    out = pinned_or_refused(third(), R, probe, p, back=lambda T_near, T: False)
+    assert not out.merged and "agree better" in out.reason, out.reason
+
+
 def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
     """`pinning.pinned_or_refused`'s floor in places (`validation.distinct`): a HoloLens
     revisit's right third-look merge (3.5 cm) had 3 raw matches at it and 8 at an
