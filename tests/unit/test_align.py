@@ -232,11 +232,13 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
     assert pinned_or_refused(refused, R, probe, p).reason == "no alignment passes"
 
 
-def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
-    """`pinning.pinned_or_refused`'s `back` (`geometric_look.falls_back` in the pipeline):
-    the alignment the matches prefer near a third-look merge is handed to it, and where the
-    maps' geometry refuses that alignment and leads back to the merge, the merge stands;
-    where not, it is refused as before (the matches and merge of the test above)."""
+def test_the_maps_geometry_judges_a_pull_on_a_third_look_merge():
+    """`pinning.pinned_or_refused`'s `settle` (`geometric_look.settle` in the pipeline): the
+    alignment the matches prefer near a third-look merge is handed to it. Where the maps'
+    geometry leads back to the merge (`settle` answers the merge itself), the merge stands;
+    where it holds the matches' alignment, the merge moves there (the truth, where the 25
+    right matches agree); where it holds neither, the merge is refused as before (the
+    matches and merge of the test above)."""
     from fleetmap.align.pinning import pinned_or_refused
     from fleetmap.align.types import AlignResult
     from fleetmap.correspondences import Correspondences
@@ -257,14 +259,18 @@ def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
 
     def back(T_near, T):
         asked.append((displacement_rms(T_near, T_true, probe), displacement_rms(T, slid, probe)))
-        return True
+        return T
 
     def third():
         return AlignResult(True, "passed on the maps' geometry", slid.copy(), "fpfh+icp")
 
-    assert pinned_or_refused(third(), R, probe, p, back=back).merged
+    out = pinned_or_refused(third(), R, probe, p, settle=back)
+    assert out.merged and np.array_equal(out.T_a_b, slid), out.reason
     assert len(asked) == 1 and asked[0][0] < 0.02 and asked[0][1] == 0, asked
-    out = pinned_or_refused(third(), R, probe, p, back=lambda T_near, T: False)
+    out = pinned_or_refused(third(), R, probe, p, settle=lambda T_near, T: T_near)
+    assert out.merged and "moved 0.13 m" in out.reason, out.reason
+    assert displacement_rms(out.T_a_b, T_true, probe) < 0.02
+    out = pinned_or_refused(third(), R, probe, p, settle=lambda T_near, T: None)
     assert not out.merged and "agree better" in out.reason, out.reason
 
 
