@@ -232,6 +232,18 @@ def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
     assert pinned_or_refused(refused, R, probe, p).reason == "no alignment passes"
 
 
+def _pulled_scene(seed: int, shift: float):
+    """(rng, T_true (a translation), T_true slid `shift` m along x, the scene's box, 300
+    probe points of B in it) for the pinning's tests."""
+    rng = np.random.default_rng(seed)
+    T_true = np.eye(4)
+    T_true[:3, 3] = [1.0, -0.5, 0.3]
+    slid = T_true.copy()
+    slid[:3, 3] += [shift, 0.0, 0.0]
+    box = np.array([3.0, 2.0, 2.0])
+    return rng, T_true, slid, box, rng.uniform(0, 1, (300, 3)) * box
+
+
 def test_the_maps_geometry_judges_a_pull_on_a_third_look_merge():
     """`pinning.pinned_or_refused`'s `settle` (`geometric_look.settle` in the pipeline): the
     alignment the matches prefer near a third-look merge is handed to it. Where the maps'
@@ -244,13 +256,8 @@ def test_the_maps_geometry_judges_a_pull_on_a_third_look_merge():
     from fleetmap.correspondences import Correspondences
     from fleetmap.geometry import apply, displacement_rms
 
-    rng, p = np.random.default_rng(3), AlignParams()
-    T_true = np.eye(4)
-    T_true[:3, 3] = [1.0, -0.5, 0.3]
-    slid = T_true.copy()
-    slid[:3, 3] += [0.13, 0.0, 0.0]
-    box = np.array([3.0, 2.0, 2.0])
-    probe = rng.uniform(0, 1, (300, 3)) * box
+    rng, T_true, slid, box, probe = _pulled_scene(3, 0.13)
+    p = AlignParams()
     X = rng.uniform(0, 1, (1500, 3)) * box
     Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
     Y[:25] = apply(T_true, X[:25]) + rng.normal(0, 0.01, (25, 3))
@@ -286,13 +293,8 @@ def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
     from fleetmap.correspondences import Correspondences
     from fleetmap.geometry import apply
 
-    rng, p = np.random.default_rng(7), AlignParams()
-    T_true = np.eye(4)
-    T_true[:3, 3] = [1.0, -0.5, 0.3]
-    slid = T_true.copy()
-    slid[:3, 3] += [0.22, 0.0, 0.0]
-    box = np.array([3.0, 2.0, 2.0])
-    probe = rng.uniform(0, 1, (300, 3)) * box
+    rng, T_true, slid, box, probe = _pulled_scene(7, 0.22)
+    p = AlignParams()
 
     def matches(places: list[int]) -> Correspondences:
         X = rng.uniform(0, 1, (1400, 3)) * box
