@@ -26,7 +26,7 @@ from fleetmap.geometry import displacement_rms, residuals
 #: `settle(T_near, T)` (`geometric_look.settle` on the pair): where the maps' geometry takes
 #: the alignment the matches prefer near a merge T: T itself (the same object) where it
 #: refuses T_near and leads back to T, another alignment where it holds there, or None
-Settle = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
+Settle = Callable[[np.ndarray, np.ndarray], np.ndarray | None]
 
 Pull = tuple[np.ndarray, int, int]  # the alignment nearby, its agreeing matches, T's
 
@@ -43,7 +43,9 @@ def carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -
     )
 
 
-def pull(T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams, floor: int = 0):
+def pull(
+    T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams, floor: int = 0
+) -> Pull | None:
     """The alignment nearby that more matches agree with than with T
     (`validation.better_nearby`): (T_near, its count, T's count), or None. With a `floor`,
     those that agree there must be at least that many distinct places

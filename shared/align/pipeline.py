@@ -35,10 +35,7 @@ from fleetmap.align.hypotheses import (
 from fleetmap.align.pinning import carried, pinned_or_refused, unpinned
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
-from fleetmap.align.validation import (
-    holdout_residual,
-    spread_m,
-)
+from fleetmap.align.validation import holdout_residual, spread_m
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
@@ -131,11 +128,11 @@ def _align(
 ) -> AlignResult:
     """C: verified (epipolar) correspondences, R: raw matches of every pair. `pinned`: the
     matches must pin the fit (`pinning.unpinned`), asked of the second look's merges: they
-    rest on the maps' geometry started from a few ASIFT matches. Not of the first look's, where the
-    refinement already follows the matches (`hypotheses.ranked`) and where a robot's map
-    that bends is fitted as a whole a few centimetres off where the matched views are
-    (`agreeing`: HoloLens walk with 1 deg/m of drift, 65 matches agree with a fit 13 cm
-    away, 11 with the merge, which holds there within the test's 15 cm); unless the
+    rest on the maps' geometry started from a few ASIFT matches. Not of the first look's,
+    where the refinement already follows the matches (`hypotheses.ranked`) and where a
+    robot's map that bends is fitted as a whole a few centimetres off where the matched
+    views are (`agreeing`: HoloLens walk with 1 deg/m of drift, 65 matches agree with a fit
+    13 cm away, 11 with the merge, which holds there within the test's 15 cm); unless the
     geometry carried it alone (`pinning.carried`)."""
     if len(R) < p.min_inliers:
         return AlignResult(
