@@ -60,17 +60,18 @@ APART = (
 _PARTS = "tests/e2e/test_sun3d_alignment.py::test_sun3d_parts_are_merged_right_or_not_at_all"
 
 #: Seconds of the costly groups, by group name: their wall seconds in a full run on two
-#: workers (2026-11-28, 392 tests in 432 s; the three recall tests changed after it by their
-#: own runs), which only order them; the others took under 7 s there. A group's share moves
-#: between runs (the feature cache: whichever test extracts an image first pays for it),
-#: and under load the merges' share grows, so the order is a guide, not a promise. A long
-#: test missing here runs after every listed group: add it.
+#: workers (2026-11-28, 392 tests in 432 s; the recall tests changed after it by their own
+#: runs, the two pinning ones by a clean clone's run of 2026-11-29), which only order them;
+#: the others took under 7 s there. A group's share moves between runs (the feature cache:
+#: whichever test extracts an image first pays for it), and under load the merges' share
+#: grows, so the order is a guide, not a promise. A long test missing here runs after every
+#: listed group: add it.
 COST_S = {
     "tests/e2e/test_fleet_drift.py": 105,
     "tests/e2e/test_live_map.py": 85,
     "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 48,
-    "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 30,
-    "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 30,
+    "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 67,
+    "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 57,
     APART[2]: 47,
     "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
     "tests/e2e/test_demo_fleet.py": 33,
