@@ -175,33 +175,25 @@ def look_voxel(p: AlignParams, depth: float) -> float:
     return float(np.clip(p.geometric.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
 
 
-def settle(
-    T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: float
-) -> np.ndarray | None:
-    """Where the maps' geometry takes an alignment T_near that the matches prefer near a merge
-    T (`pinning.pinned_or_refused`): T itself (the same object) where it refuses T_near
-    (firm free-space consistency, `judge`, under the look's bar) and ICP from there
-    (`refine`, point-to-plane at half a voxel) lands within the map's own voxel (`voxel_m`)
-    of T; ICP's landing where the look's gate passes it and it stays within the gate's
-    rivals of T; else None.
+def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: float) -> bool:
+    """Whether the maps' geometry refuses an alignment T_near that the matches prefer near a
+    merge T and leads back from it to T (`pinning.pinned_or_refused`): its firm free-space
+    consistency (`judge`) under the look's bar, and ICP from it (`refine`, point-to-plane at
+    half a voxel) landing within the map's own voxel (`voxel_m`) of T.
 
-    Where the surfaces slide along each other (what the matches' pinning guards against), an
-    alignment along the slide keeps its free space and ICP leaves it near where it is, in
-    the slide's valley: a HoloLens pair through a D435's noise merged 11.8 cm off, the
-    matches preferring an alignment 13 cm away at firm 0.89, whose refinement lands 7 cm
-    from the merge and 4.6 cm from the truth, passing the gate (22 matches agree, as many as
-    with the truth); SUN3D windows 10.6 cm off, the pull at firm 0.82, its refinement 11.1
-    cm off and refused (firm 0.81). At a right merge (HoloLens, 18% shared, 2.9 cm) the
-    matches preferred one 21 cm off at firm 0.55, whose refinement lands 7 mm from the merge
-    (docs/ALIGNER.md, session 34)."""
-    look, voxel, clouds = p.geometric, look_voxel(p, depth), pair.clouds()
+    Where the surfaces slide along each other (what the matches' pinning guards against),
+    an alignment along the slide keeps its free space and ICP leaves it near where it is: a
+    HoloLens pair through a D435's noise merged 11.8 cm off, the matches preferring an
+    alignment 13 cm away at firm 0.89 whose refinement lands 7 cm from the merge; SUN3D
+    windows 10.6 cm off, the pull at firm 0.82, its refinement 21 cm away. At a right merge
+    (HoloLens, 18% shared, 2.9 cm) the matches preferred one 21 cm off at firm 0.55, whose
+    refinement lands 7 mm from the merge (docs/ALIGNER.md, session 34)."""
+    voxel, clouds = look_voxel(p, depth), pair.clouds()
     seen = tuple([SeenDepth(v) for v in views] for views in pair.views)
-    probe, landed = probe_points(clouds[1].at(voxel)), refine(T_near, clouds, voxel)
-    if displacement_rms(landed, T, probe) < p.voxel_m:
-        return T if min(judge(T_near, clouds, seen, voxel).firm) < look.min_consistency else None
-    if beyond_rivals(landed, T, probe, p) or not judge(landed, clouds, seen, voxel).passes(look, p):
-        return None
-    return landed
+    if min(judge(T_near, clouds, seen, voxel).firm) >= p.geometric.min_consistency:
+        return False
+    probe = probe_points(clouds[1].at(voxel))
+    return displacement_rms(refine(T_near, clouds, voxel), T, probe) < p.voxel_m
 
 
 def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:

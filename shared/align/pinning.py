@@ -5,9 +5,8 @@ alone, the second look's, the third look's) can slide along surfaces that slide 
 other while the free space stays consistent. The raw matches say where they agree: a merge
 is refused where they prefer an alignment nearby (`unpinned`) or, for the third look, where
 the verified matches agree on one far away (`outvoted`). For the third look the maps'
-geometry has its say on the pull (`geometric_look.settle`): a place it refuses and leaves
-for the merge does not refuse it, and where ICP from the place the matches prefer lands
-where the look's gate passes and the matches pin it, the merge moves there.
+geometry has its say on the pull: a place it refuses and leaves for the merge
+(`geometric_look.falls_back`) does not refuse it.
 """
 
 from __future__ import annotations
@@ -23,10 +22,9 @@ from fleetmap.align.validation import better_nearby, distinct, outnumbers
 from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import displacement_rms, residuals
 
-#: `settle(T_near, T)` (`geometric_look.settle` on the pair): where the maps' geometry takes
-#: the alignment the matches prefer near a merge T: T itself (the same object) where it
-#: refuses T_near and leads back to T, another alignment where it holds there, or None
-Settle = Callable[[np.ndarray, np.ndarray], np.ndarray | None]
+#: `falls_back(T_near, T)` (`geometric_look.falls_back` on the pair): whether the maps'
+#: geometry refuses the alignment the matches prefer near a merge T and leads back to T
+FallsBack = Callable[[np.ndarray, np.ndarray], bool]
 
 Pull = tuple[np.ndarray, int, int]  # the alignment nearby, its agreeing matches, T's
 
@@ -80,7 +78,7 @@ def pinned_or_refused(
     probe: np.ndarray,
     p: AlignParams,
     C: Correspondences | None = None,
-    settle: Settle | None = None,
+    back: FallsBack | None = None,
 ) -> AlignResult:
     """The third look's merge, refused where the matches do not pin it (`unpinned`), as the
     second look's, where the alignment they prefer gathers at least half `min_inliers`
@@ -94,26 +92,18 @@ def pinned_or_refused(
     cm at its 2.7 m) passed free space and colour 12 cm off, while 27 matches agreed with an
     alignment 13 cm from it (10 from the truth) against 9 with it (docs/ALIGNER.md, session
     26). `C`, the verified matches: refused too where they agree on an alignment far from it
-    (`outvoted`). `settle` (`geometric_look.settle` on the pair): the maps' geometry
-    judges the pull. Where it refuses the alignment the matches prefer and leads back to the
-    merge, the merge stands (a HoloLens pair, 18% shared, merged about 3 cm from the truth,
-    was refused through session 33 by 12 raw matches at seven places agreeing with an
-    alignment 21 cm off, whose firm free space is 0.55 and from which ICP returns to within
-    7 mm of the merge); where it holds the refinement of that alignment and the matches pin
-    it (no pull from there, none far), the merge moves there (the D435 HoloLens pair above:
-    4.6 cm from the truth); docs/ALIGNER.md, session 34."""
+    (`outvoted`). `back` (`geometric_look.falls_back` on the pair): a pull to a place the
+    maps' geometry refuses and leads back from to the merge does not refuse it (a HoloLens
+    pair, 18% shared, merged about 3 cm from the truth, was refused through session 33 by
+    12 raw matches at seven places agreeing with an alignment 21 cm off, whose firm free
+    space is 0.55 and from which ICP returns to within 7 mm of the merge; docs/ALIGNER.md,
+    session 34)."""
     if not third.merged:
         return third
-    T, floor = third.T_a_b, p.min_inliers // 2
-    why, found = "", pull(T, R, probe, p, floor)
-    if found is not None:
-        moved = settle(found[0], T) if settle is not None else None
-        if moved is None or (moved is not T and pull(moved, R, probe, p, floor) is not None):
-            why = pulled_away(found, T, probe, p)
-        elif moved is not T:
-            shift = displacement_rms(moved, T, probe)
-            third.T_a_b, T = moved, moved
-            third.reason += f"; moved {shift:.2f} m to where the matches pin it"
+    T = third.T_a_b
+    found = pull(T, R, probe, p, p.min_inliers // 2)
+    held = found is not None and back is not None and back(found[0], T)
+    why = pulled_away(found, T, probe, p) if found is not None and not held else ""
     why = why or (outvoted(T, C, probe, p) if C is not None else "")
     if why:
         third.merged, third.reason = False, f"{third.reason}, but {why}"

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from fleetmap.align.geometric_look import geometric_look, grey_correlation, settle
+from fleetmap.align.geometric_look import falls_back, geometric_look, grey_correlation
 from fleetmap.align.hypotheses import (
     choose,
     pair_hypotheses,
@@ -71,8 +71,8 @@ def align_views(
             res.reason += f"; with affine-simulated features too: {again.reason}"
     if not res.merged and p.use_icp and p.geometric_look:
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
-        held = lambda T_near, T: settle(T_near, T, pair, p, depth)  # noqa: E731
-        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, held)
+        back = lambda T_near, T: falls_back(T_near, T, pair, p, depth)  # noqa: E731
+        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back)
         if third.merged:
             res = third
         else:

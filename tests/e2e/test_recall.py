@@ -199,7 +199,7 @@ def test_room_a_pull_the_maps_geometry_refuses_is_merged(hololens, tmp_path):
     dozen raw matches, ASIFT's among them, at six or more places agree with an alignment
     some 20 cm away against half as many at the merge. The maps' geometry refuses that
     alignment (firm 0.52-0.58) and ICP started there lands 0.5-1.9 cm from the merge
-    (`geometric_look.settle`): merged in all 8 since, 3.9-4.3 cm / 0.4 deg at B's
+    (`geometric_look.falls_back`): merged in all 8 since, 3.9-4.3 cm / 0.4 deg at B's
     cameras. Within 5 cm / 2 deg of the truth."""
     fit, err = hololens_windows(tmp_path, hololens, (60, 120), (30, 90), 71)
     merged_near_truth(fit, err, "fpfh")
