@@ -178,19 +178,22 @@ def look_voxel(p: AlignParams, depth: float) -> float:
 def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: float) -> bool:
     """Whether the maps' geometry refuses an alignment T_near that the matches prefer near a
     merge T and leads back from it to T (`pinning.pinned_or_refused`): its firm free-space
-    consistency (`judge`) under the look's bar, and ICP from it (`refine`, point-to-plane at
-    half a voxel) landing within the map's own voxel (`voxel_m`) of T.
+    consistency (`judge`) under even the first look's bar (`min_consistency`, 0.7, the
+    laxest the gate asks; the look's own is 0.9), and ICP from it (`refine`, point-to-plane
+    at half a voxel) landing within the map's own voxel (`voxel_m`) of T.
 
-    Where the surfaces slide along each other (what the matches' pinning guards against),
-    an alignment along the slide keeps its free space and ICP leaves it near where it is: a
+    Where the surfaces slide along each other (what the matches' pinning guards against), an
+    alignment along the slide keeps its free space and ICP leaves it near where it is: a
     HoloLens pair through a D435's noise merged 11.8 cm off, the matches preferring an
     alignment 13 cm away at firm 0.89 whose refinement lands 7 cm from the merge; SUN3D
-    windows 10.6 cm off, the pull at firm 0.82, its refinement 21 cm away. At a right merge
-    (HoloLens, 18% shared, 2.9 cm) the matches preferred one 21 cm off at firm 0.55, whose
-    refinement lands 7 mm from the merge (docs/ALIGNER.md, session 34)."""
+    windows 10.6 cm off, the pull at firm 0.82, its refinement 21 cm away; another HoloLens
+    pair through that noise, 6.4-7.0 cm off, the pull at firm 0.84-0.88, its refinement just
+    beyond the voxel. At a right merge (HoloLens, 18% shared, 2.9 cm) the matches preferred
+    one 21 cm off at firm 0.52-0.58 (ten pairs of map frames), whose refinement lands 5-19
+    mm from the merge (docs/ALIGNER.md, session 34)."""
     voxel, clouds = look_voxel(p, depth), pair.clouds()
     seen = tuple([SeenDepth(v) for v in views] for views in pair.views)
-    if min(judge(T_near, clouds, seen, voxel).firm) >= p.geometric.min_consistency:
+    if min(judge(T_near, clouds, seen, voxel).firm) >= p.min_consistency:
         return False
     probe = probe_points(clouds[1].at(voxel))
     return displacement_rms(refine(T_near, clouds, voxel), T, probe) < p.voxel_m
