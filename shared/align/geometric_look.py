@@ -34,7 +34,7 @@ from fleetmap.align.hypotheses import choose, probe_points
 from fleetmap.align.manhattan import manhattan_starts
 from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
 from fleetmap.geometry import apply, displacement_rms, invert, transform_error
-from fleetmap.mapcloud import REG, SEEDED, SeenDepth, free_space_check, icp, overlap_fitness
+from fleetmap.mapcloud import REG, SEEDED, free_space_check, icp, overlap_fitness
 
 log = logging.getLogger(__name__)
 
@@ -192,8 +192,7 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
     one 21 cm off at firm 0.52-0.58 (ten pairs of map frames), whose refinement lands 5-19
     mm from the merge (docs/ALIGNER.md, session 34)."""
     voxel, clouds = look_voxel(p, depth), pair.clouds()
-    seen = tuple([SeenDepth(v) for v in views] for views in pair.views)
-    if min(judge(T_near, clouds, seen, voxel).firm) >= p.min_consistency:
+    if min(judge(T_near, clouds, pair.seen(), voxel).firm) >= p.min_consistency:
         return False
     probe = probe_points(clouds[1].at(voxel))
     return displacement_rms(refine(T_near, clouds, voxel), T, probe) < p.voxel_m
@@ -209,7 +208,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     few = min(len(c.at(voxel).points) for c in clouds)
     if few < MIN_POINTS:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
-    seen = tuple([SeenDepth(v) for v in views] for views in pair.views)  # kept for `choose` too
+    seen = pair.seen()  # kept for `choose` and the pinning too
     judged, found = [], basins(clouds, voxel, look, p.min_overlap)
     ca, cb, screen = clouds[0].at(voxel), clouds[1].at(voxel), look.min_correlation - COARSE_SLACK
     coarse = [grey_correlation(ca, cb, T, voxel)[0] for T, _ in found]

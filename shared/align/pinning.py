@@ -26,8 +26,6 @@ from fleetmap.geometry import displacement_rms, residuals
 #: geometry refuses the alignment the matches prefer near a merge T and leads back to T
 FallsBack = Callable[[np.ndarray, np.ndarray], bool]
 
-Pull = tuple[np.ndarray, int, int]  # the alignment nearby, its agreeing matches, T's
-
 
 def carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -> bool:
     """Did the geometry carry a first-look merge on its own: decisive free space, and
@@ -41,35 +39,33 @@ def carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -
     )
 
 
-def pull(
-    T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams, floor: int = 0
-) -> Pull | None:
-    """The alignment nearby that more matches agree with than with T
-    (`validation.better_nearby`): (T_near, its count, T's count), or None. With a `floor`,
-    those that agree there must be at least that many distinct places
-    (`validation.distinct` at the voxel): a handful of places, each matched several times,
-    is still a handful."""
+def unpinned(
+    T: np.ndarray,
+    R: Correspondences,
+    probe: np.ndarray,
+    p: AlignParams,
+    floor: int = 0,
+    back: FallsBack | None = None,
+) -> str:
+    """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
+    alignment nearby), or "". With a `floor`, those that agree there must be at least that
+    many distinct places (`validation.distinct` at the voxel): a handful of places, each
+    matched several times, is still a handful. With `back`, a place the maps' geometry
+    refuses and leads back from to T does not count."""
     found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
-    if found is None or not floor:
-        return found
-    agree = residuals(found[0], R.X, R.Y) < p.ransac_tol_m
-    return found if distinct(R.X, R.Y, agree, p.voxel_m) >= floor else None
-
-
-def pulled_away(found: Pull, T: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
-    """The refusal for a `pull` from T."""
+    if found is None:
+        return ""
     T_near, n, n_T = found
+    agree = residuals(T_near, R.X, R.Y) < p.ransac_tol_m
+    if floor and distinct(R.X, R.Y, agree, p.voxel_m) < floor:
+        return ""
+    if back is not None and back(T_near, T):
+        return ""
     return (
         f"the matches agree better with an alignment {displacement_rms(T_near, T, probe):.2f} m "
         f"away ({n} against {n_T} within {p.ransac_tol_m:.2f} m): the maps' geometry alone "
         "led here (surfaces that slide along each other?)"
     )
-
-
-def unpinned(T: np.ndarray, R: Correspondences, probe: np.ndarray, p: AlignParams) -> str:
-    """Why the matches do not pin T (a `pull` nearby), or ""."""
-    found = pull(T, R, probe, p)
-    return pulled_away(found, T, probe, p) if found is not None else ""
 
 
 def pinned_or_refused(
@@ -101,9 +97,7 @@ def pinned_or_refused(
     if not third.merged:
         return third
     T = third.T_a_b
-    found = pull(T, R, probe, p, p.min_inliers // 2)
-    held = found is not None and back is not None and back(found[0], T)
-    why = pulled_away(found, T, probe, p) if found is not None and not held else ""
+    why = unpinned(T, R, probe, p, p.min_inliers // 2, back)
     why = why or (outvoted(T, C, probe, p) if C is not None else "")
     if why:
         third.merged, third.reason = False, f"{third.reason}, but {why}"

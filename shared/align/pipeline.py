@@ -40,7 +40,7 @@ from fleetmap.correspondences import Correspondences, RGBDView, pair_features, v
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply, displacement_rms, invert, residuals, transform_error
-from fleetmap.mapcloud import ViewsCloud, overlap_fitness
+from fleetmap.mapcloud import SeenDepth, ViewsCloud, overlap_fitness
 from fleetmap.registration import kabsch
 
 log = logging.getLogger(__name__)
@@ -109,13 +109,20 @@ class _PairClouds:
 
     def __init__(self, pairs):
         self.views = unique_views(pairs, 0), unique_views(pairs, 1)
-        self._clouds = None
+        self._clouds = self._seen = None
         self.memo: dict = {}
 
     def clouds(self) -> tuple[ViewsCloud, ViewsCloud]:
         if self._clouds is None:
             self._clouds = ViewsCloud(self.views[0]), ViewsCloud(self.views[1])
         return self._clouds
+
+    def seen(self) -> tuple[list[SeenDepth], list[SeenDepth]]:
+        """Each robot's views as `SeenDepth` (their nearest-reading images made once, for
+        the third look's judging and the pinning's)."""
+        if self._seen is None:
+            self._seen = tuple([SeenDepth(v) for v in views] for views in self.views)
+        return self._seen
 
 
 def _align(
