@@ -16,13 +16,14 @@ import numpy as np
 
 from fleetmap.camera import Intrinsics, backproject_pixels
 from fleetmap.errors import BadInput
-from fleetmap.feature_cache import cached_local
+from fleetmap.feature_cache import Recent, cached_local, digest
 from fleetmap.features import FeatureParams, LocalFeatures, detect_and_describe
 from fleetmap.geometry import apply, check_transform
 from fleetmap.matching import MatchParams, match_descriptors_at, verify_pair
 
 ALIGN_FEATURES = FeatureParams(max_features=1000, min_mser_features=400)
 ALIGN_MATCH = MatchParams(ratio=0.85, min_epipolar_inliers=8, min_inlier_ratio=0.0)
+_VIEWS = Recent(256)  # at most 1,000 features (136 kB) a view: 35 MB
 
 
 @dataclass
@@ -77,9 +78,10 @@ class Correspondences:
 
 def view_features(view: RGBDView, params: FeatureParams = ALIGN_FEATURES) -> LocalFeatures:
     """A view's MSER + SIFT at the aligner's settings (kept by `fleetmap.feature_cache`
-    where one is on)."""
+    where one is on, and in memory for the last few hundred views: `Recent`)."""
     detect = partial(detect_and_describe, view.rgb, params)
-    return cached_local(view.rgb, detect, params, "aligner view")
+    key = (digest(view.rgb), params)
+    return _VIEWS.get(key, lambda: cached_local(view.rgb, detect, params, "aligner view"))
 
 
 def pair_correspondences(

@@ -23,7 +23,9 @@ import hashlib
 import logging
 import os
 import tempfile
+import threading
 import zipfile
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +77,28 @@ class FeatureCache:
         except OSError as e:  # a full disk
             log.warning("feature cache: cannot write under %s (%s)", folder, e)
             Path(tmp).unlink(missing_ok=True)
+
+
+class Recent:
+    """The last `size` results by key, in memory, shared by the aligner's request threads.
+    The views of one robot recur in the pairs of a fleet's merge (each robot in two of a
+    three-robot fleet's pairs) and in the live map's refits as keyframes arrive: their
+    features are then not computed again."""
+
+    def __init__(self, size: int):
+        self.size, self._items, self._lock = size, OrderedDict(), threading.Lock()
+
+    def get(self, key, make):
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        value = make()  # outside the lock: two threads may both compute one, rarely
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+        return value
 
 
 def digest(image: np.ndarray, salt: str = "") -> str:

@@ -12,8 +12,6 @@ look's raw matches: the same hypotheses, free-space test and gate judge them all
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
@@ -21,7 +19,7 @@ import numpy as np
 
 from fleetmap.align.types import SecondLook, unique_views
 from fleetmap.correspondences import Correspondences, lift
-from fleetmap.feature_cache import cached_local, digest
+from fleetmap.feature_cache import Recent, cached_local, digest
 from fleetmap.features import SIFT_LAYERS, SIFT_SIGMA, LocalFeatures, affine_features
 from fleetmap.matching import distinct_second, match_descriptors
 
@@ -34,29 +32,8 @@ def spread_views(views: list, n: int) -> list:
     return [views[int(k)] for k in np.linspace(0, len(views) - 1, n).round()]
 
 
-class _Recent:
-    """The last `size` results by key, shared by the aligner's request threads. The live
-    map retries a refused pair as its robots' keyframes grow, mostly with the same views;
-    their ASIFT features and view-pair matches are then not computed again."""
-
-    def __init__(self, size: int):
-        self.size, self._items, self._lock = size, OrderedDict(), threading.Lock()
-
-    def get(self, key, make):
-        with self._lock:
-            if key in self._items:
-                self._items.move_to_end(key)
-                return self._items[key]
-        value = make()  # outside the lock: two threads may both compute one, rarely
-        with self._lock:
-            self._items[key] = value
-            while len(self._items) > self.size:
-                self._items.popitem(last=False)
-        return value
-
-
-_FEATURES = _Recent(48)  # about 6,000 features (0.8 MB) a view
-_MATCHES = _Recent(1024)
+_FEATURES = Recent(48)  # about 6,000 features (0.8 MB) a view
+_MATCHES = Recent(1024)
 
 
 def _affine(image: np.ndarray, max_tilt: int, per_view: int) -> LocalFeatures:
@@ -68,7 +45,7 @@ def _affine(image: np.ndarray, max_tilt: int, per_view: int) -> LocalFeatures:
 def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
     """Raw (mutual, ratio-test) ASIFT matches of every pair of `s.views` views of each
     robot, lifted to 3D in each robot's map frame; pair indices from `first_index` on.
-    Features and matches of views seen in recent requests are reused (`_Recent`)."""
+    Features and matches of views seen in recent requests are reused (`feature_cache.Recent`)."""
     va = spread_views(unique_views(pairs, 0), s.views)
     vb = spread_views(unique_views(pairs, 1), s.views)
     views = va + vb

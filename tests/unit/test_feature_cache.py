@@ -13,7 +13,7 @@ import pytest
 from fleetmap import extract
 from fleetmap.dataset import load_depth, load_rgb, read_recording
 from fleetmap.extract import FrameExtractor
-from fleetmap.feature_cache import ENV, FeatureCache
+from fleetmap.feature_cache import ENV, FeatureCache, Recent
 
 ROBOT = Path(__file__).resolve().parents[2] / "examples" / "fr1_rpy_fleet" / "alpha"
 
@@ -94,6 +94,7 @@ def test_the_aligners_view_features_read_back_are_the_ones_extracted(tmp_path, m
     from fleetmap.fleet.view_choice import load_view
 
     view = load_view(read_recording(ROBOT), 5)
+    monkeypatch.setattr(correspondences, "_VIEWS", Recent(0))  # the disk alone
     monkeypatch.delenv(ENV, raising=False)
     fresh = correspondences.view_features(view), second_look._affine(view.rgb, 3, 100)
     monkeypatch.setenv(ENV, str(tmp_path))
@@ -108,3 +109,21 @@ def test_the_aligners_view_features_read_back_are_the_ones_extracted(tmp_path, m
             assert a.descriptors.dtype == b.descriptors.dtype
             assert np.array_equal(a.descriptors, b.descriptors)
     assert len(fresh[0].keypoints) > 50 and len(fresh[1].keypoints) > 50
+
+
+def test_a_views_features_asked_again_are_not_extracted_again(monkeypatch):
+    """The aligner's recent views (`Recent`): the features of a view met again (the same
+    pixels in another view object: another pair, another request) come from memory,
+    without the disk cache; another image is extracted."""
+    from fleetmap import correspondences
+    from fleetmap.fleet.view_choice import load_view
+
+    monkeypatch.delenv(ENV, raising=False)
+    monkeypatch.setattr(correspondences, "_VIEWS", Recent(4))
+    rec = read_recording(ROBOT)
+    first = correspondences.view_features(load_view(rec, 5))
+    monkeypatch.setattr(correspondences, "detect_and_describe", _no_extraction)
+    again = correspondences.view_features(load_view(rec, 5))
+    assert np.array_equal(first.descriptors, again.descriptors) and len(first.keypoints) > 50
+    with pytest.raises(AssertionError):
+        correspondences.view_features(load_view(rec, 6))
