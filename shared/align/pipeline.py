@@ -24,7 +24,12 @@ import time
 
 import numpy as np
 
-from fleetmap.align.geometric_look import falls_back, geometric_look, grey_correlation
+from fleetmap.align.geometric_look import (
+    contested,
+    falls_back,
+    geometric_look,
+    grey_correlation,
+)
 from fleetmap.align.hypotheses import (
     choose,
     pair_hypotheses,
@@ -60,10 +65,13 @@ def align_views(
     p = p.at_depth(depth)  # a nearer scene: every length in proportion
     C, R = verified_and_raw(pairs, pair_features(pairs))
     pair = _PairClouds(pairs)  # both looks see the same views: their clouds made once
-    res = _align(C, R, pair, p, depth)
+    res, looked = _align(C, R, pair, p, depth), None
     if not res.merged and p.second_look and len(R) >= p.min_inliers:
         R = Correspondences.concat([R, affine_matches(pairs, len(pairs), p.second)])
         again = _align(C, R, pair, p, depth, pinned=True)
+        if again.merged and p.use_icp and p.geometric_look:
+            why, looked = contested(again, pair, R, p, depth)
+            again.merged, again.reason = not why, why or again.reason
         if again.merged:
             res = again
             res.method += "+asift"
@@ -72,7 +80,8 @@ def align_views(
     if not res.merged and p.use_icp and p.geometric_look:
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
         back = lambda T_near, T: falls_back(T_near, T, pair, p, depth)  # noqa: E731
-        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back)
+        third = looked or geometric_look(pair, R, p, depth)
+        third = pinned_or_refused(third, R, probe, p, C, back)
         if third.merged:
             res = third
         else:
