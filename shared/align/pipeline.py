@@ -25,10 +25,10 @@ import time
 import numpy as np
 
 from fleetmap.align.geometric_look import (
-    contested,
     falls_back,
     geometric_look,
     grey_correlation,
+    unfirm,
 )
 from fleetmap.align.hypotheses import (
     choose,
@@ -65,12 +65,12 @@ def align_views(
     p = p.at_depth(depth)  # a nearer scene: every length in proportion
     C, R = verified_and_raw(pairs, pair_features(pairs))
     pair = _PairClouds(pairs)  # both looks see the same views: their clouds made once
-    res, looked = _align(C, R, pair, p, depth), None
+    res = _align(C, R, pair, p, depth)
     if not res.merged and p.second_look and len(R) >= p.min_inliers:
         R = Correspondences.concat([R, affine_matches(pairs, len(pairs), p.second)])
         again = _align(C, R, pair, p, depth, pinned=True)
-        if again.merged and p.use_icp and p.geometric_look:
-            why, looked = contested(again, pair, R, p, depth)
+        if again.merged and p.use_icp:
+            why = unfirm(again.T_a_b, pair, p, depth)
             again.merged, again.reason = not why, why or again.reason
         if again.merged:
             res = again
@@ -80,8 +80,7 @@ def align_views(
     if not res.merged and p.use_icp and p.geometric_look:
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
         back = lambda T_near, T: falls_back(T_near, T, pair, p, depth)  # noqa: E731
-        third = looked or geometric_look(pair, R, p, depth)
-        third = pinned_or_refused(third, R, probe, p, C, back)
+        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back)
         if third.merged:
             res = third
         else:

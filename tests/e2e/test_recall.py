@@ -222,12 +222,11 @@ def test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_
     a D435's depth noise, B as a 16:9 camera of 848 x 477 (recall seed 45's conditions):
     through session 34 the second look merged them 43-45 cm from the truth (at the
     recording's size) in three of four pairs of these tests' map frames (seeds 61-67), 16
-    ASIFT matches agreeing, free space 0.72. The third look judges such a merge under its
-    bar (firm 0.60-0.70) and, in these frames (63) and 67's, passes an alignment near the
-    truth 0.25 m from it (`geometric_look.contested`): the second look's merge gives way
-    and the third look's own goes through the pinning, which refuses it. In 65's frames the
-    third look passes nothing and the wrong merge stands (docs/ALIGNER.md, session 35).
-    Right within 5 cm at the recording's size, or refused."""
+    ASIFT matches agreeing, free space 0.72 at the first look's margin. Judged as the third
+    look judges (at a sensor's noise for the depth), that merge's free space is firm
+    0.60-0.61 (`geometric_look.unfirm`, the first look's bar 0.7; right second-look merges
+    0.91-0.98): refused now in all three. Right within 5 cm at the recording's size, or
+    refused."""
     fit, err = hololens_windows(tmp_path, hololens, (60, 120), (120, 180), 63, (0.6, D435_SIGMA_1M))
     right_or_refused(fit, err)
 
