@@ -275,7 +275,7 @@ def unfirm(T: np.ndarray, pair, p: AlignParams, depth: float) -> str:
     its wider margin, confirms. A HoloLens pair (21% shared) at 0.6 of its size, through a
     D435's noise and with B as a 16:9 camera, was merged 41-45 cm off in five of six pairs
     of map frames: 16 matches agreeing, free space 0.72 at the first look's margin, firm
-    0.60-0.61 here (the truth 0.99). The right second-look merges of three draws (HoloLens,
+    0.59-0.61 here (the truth 0.99). The right second-look merges of three draws (HoloLens,
     SUN3D, a desk's scale, a D435's noise, another camera) are firm 0.91-0.98 here, the
     loose SUN3D one (9.9 cm, its truth good to 1.5 deg) 0.88 (docs/ALIGNER.md, session 35)."""
     voxel = look_voxel(p, depth)

@@ -224,7 +224,7 @@ def test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_
     recording's size) in three of four pairs of these tests' map frames (seeds 61-67), 16
     ASIFT matches agreeing, free space 0.72 at the first look's margin. Judged as the third
     look judges (at a sensor's noise for the depth), that merge's free space is firm
-    0.60-0.61 (`geometric_look.unfirm`, the first look's bar 0.7; right second-look merges
+    0.59-0.61 (`geometric_look.unfirm`, the first look's bar 0.7; right second-look merges
     0.91-0.98): refused now in all three. Right within 5 cm at the recording's size, or
     refused."""
     fit, err = hololens_windows(tmp_path, hololens, (60, 120), (120, 180), 63, (0.6, D435_SIGMA_1M))
