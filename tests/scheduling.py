@@ -73,7 +73,7 @@ COST_S = {
     "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 67,
     "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 57,
     "tests/e2e/test_recall.py::"
-    "test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_merge": 55,
+    "test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_merge": 35,
     APART[2]: 47,
     "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
     "tests/e2e/test_demo_fleet.py": 33,
