@@ -191,11 +191,17 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
     beyond the voxel. At a right merge (HoloLens, 18% shared, 2.9 cm) the matches preferred
     one 21 cm off at firm 0.52-0.58 (ten pairs of map frames), whose refinement lands 5-19
     mm from the merge (docs/ALIGNER.md, session 34)."""
-    voxel, clouds = look_voxel(p, depth), pair.clouds()
-    if min(judge(T_near, clouds, pair.seen(), voxel).firm) >= p.min_consistency:
+    if firm_at_noise(T_near, pair, p, depth) >= p.min_consistency:
         return False
+    voxel, clouds = look_voxel(p, depth), pair.clouds()
     probe = probe_points(clouds[1].at(voxel))
     return displacement_rms(refine(T_near, clouds, voxel), T, probe) < p.voxel_m
+
+
+def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
+    """T's firm free-space consistency judged as this look judges (`judge` at its voxel: a
+    sensor's noise at the scene's depth), the smaller way."""
+    return min(judge(T, pair.clouds(), pair.seen(), look_voxel(p, depth)).firm)
 
 
 def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
@@ -278,11 +284,10 @@ def unfirm(T: np.ndarray, pair, p: AlignParams, depth: float) -> str:
     0.59-0.61 here (the truth 0.99). The right second-look merges of three draws (HoloLens,
     SUN3D, a desk's scale, a D435's noise, another camera) are firm 0.91-0.98 here, the
     loose SUN3D one (9.9 cm, its truth good to 1.5 deg) 0.88 (docs/ALIGNER.md, session 35)."""
-    voxel = look_voxel(p, depth)
-    firm = min(judge(T, pair.clouds(), pair.seen(), voxel).firm)
+    firm = firm_at_noise(T, pair, p, depth)
     if firm >= p.min_consistency:
         return ""
     return (
-        f"judged at the sensor's noise (a {voxel:.2f} m voxel), its free space is firm "
-        f"{firm:.2f} (need {p.min_consistency})"
+        f"judged at the sensor's noise (a {look_voxel(p, depth):.2f} m voxel), its free "
+        f"space is firm {firm:.2f} (need {p.min_consistency})"
     )
