@@ -3,7 +3,7 @@ beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
         [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR] [--scale 0.4]
-        [--frames 2] [--depth-noise d435] [--other-camera]
+        [--frames 2] [--depth-noise d435] [--other-camera] [--bins "<10%" none]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
 hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
@@ -339,6 +339,13 @@ def main() -> None:
         help="random map frames per pair (the first as without it; the others without the "
         "recipe): how many verdicts change with the frames alone",
     )
+    ap.add_argument(
+        "--bins",
+        nargs="+",
+        choices=[b for *_, b in BINS] + ["none"],
+        help="only pairs of these overlap bins ('none': the pairs of different recordings); "
+        "with a larger --per-bin, a hunt for look-alike places (<10%%) among many pairs",
+    )
     args = ap.parse_args()
     if args.frames < 1:
         ap.error(f"--frames {args.frames}: give 1 or more map frames per pair")
@@ -370,6 +377,8 @@ def main() -> None:
     cross = cross_pairs(specs, rng)
     if not args.only or "cross" in args.only:
         pairs += cross
+    if args.bins:  # drawn as without it: the same pairs, those of other bins left out
+        pairs = [p for p in pairs if p["bin"] in args.bins]
     print(f"{len(pairs)} pairs", flush=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="fleetmap-recall-") as tmp:
