@@ -377,7 +377,8 @@ def main() -> None:
     cross = cross_pairs(specs, rng)
     if not args.only or "cross" in args.only:
         pairs += cross
-    if args.bins:  # drawn as without it: the same pairs, those of other bins left out
+    if args.bins:  # the pairs drawn as without it, those of other bins left out (their map
+        # frames differ: the generator draws fewer before them)
         pairs = [p for p in pairs if p["bin"] in args.bins]
     print(f"{len(pairs)} pairs", flush=True)
     rows = []
