@@ -2,7 +2,7 @@
 rigid floor, today's rigid placement and the map_merge_3d recipe (issue 22).
 
     .venv/bin/python bench/drift.py [--cases hololens hololens3 hololens_short sun3d rpy]
-        [--rates 0 0.25 0.5 1] [--seeds 2] [--recipe] [--timing]
+        [--rates 0 0.25 0.5 1] [--seeds 2] [--recipe] [--timing] [--json rows.json] [--keep DIR]
 
 Drift model (`fleetmap.fleet.drift`): each robot's own poses get a yaw error about gravity
 growing with the distance walked (bias +-rate deg/m, random walk rate/2 deg/sqrt(m)) and
@@ -138,6 +138,10 @@ def run(name: str, robots, rate: float, seed: int, work: Path, recipe: bool) -> 
     row |= {"fleetmap": ate(est, tru), "rigid_placement": ate(rigid, tru)}
     row |= {"floor": floor([drifted[r][:, :3, 3] for r in merged], tru)}
     row |= {"graph": report["fleet_graph"], "timing": report["timing_s"]}
+    row["fits"] = [  # which pairs merged and how: what the graph started from
+        {k: f.get(k) for k in ("robot_a", "robot_b", "merged", "method", "inliers", "reason")}
+        for f in report["fits"]
+    ]
     if recipe:
         rec = [drifted[merged[0]][:, :3, 3]] + [
             (recipe_transform(dirs[merged[0]], dirs[r]) @ drifted[r])[:, :3, 3] for r in merged[1:]
@@ -185,19 +189,25 @@ def main() -> None:
     ap.add_argument("--recipe", action="store_true")
     ap.add_argument("--timing", action="store_true")
     ap.add_argument("--json", type=Path)
+    ap.add_argument(
+        "--keep", type=Path, help="keep every merge's drifted robots and output here (to inspect)"
+    )
     args = ap.parse_args()
+    if args.keep and args.keep.exists() and not args.keep.is_dir():
+        ap.error(f"--keep {args.keep}: not a folder")
     if args.timing:
         for seed in range(3):
             wall, cpu = timing_2000(seed=seed)
             print(f"optimise 2,000 keyframes: {wall:.3f} s wall, {cpu:.3f} s CPU")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        work = args.keep or Path(tmp)
         for name, robots in cases(args.data).items():
             if name not in args.cases:
                 continue
             for rate in args.rates:
                 for seed in range(args.seeds if rate > 0 else 1):
-                    row = run(name, robots, rate, seed, Path(tmp), args.recipe)
+                    row = run(name, robots, rate, seed, work, args.recipe)
                     rows.append(row)
                     print(_line(row), flush=True)
     if args.json:
