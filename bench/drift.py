@@ -84,6 +84,16 @@ def ate(est: list[np.ndarray], truth: list[np.ndarray]) -> float:
     return float(np.sqrt((((e @ T[:3, :3].T + T[:3, 3]) - t) ** 2).sum(1).mean()))
 
 
+def ate_by_robot(est: list[np.ndarray], truth: list[np.ndarray]) -> list[float]:
+    """Each robot's RMSE (m) under `ate`'s one alignment of the whole fleet: which robot
+    the pooled figure comes from."""
+    T = kabsch(np.concatenate(est), np.concatenate(truth))
+    return [
+        float(np.sqrt((((e @ T[:3, :3].T + T[:3, 3]) - t) ** 2).sum(1).mean()))
+        for e, t in zip(est, truth, strict=True)
+    ]
+
+
 def floor(drifted: list[np.ndarray], truth: list[np.ndarray]) -> float:
     """Pooled RMSE with each robot aligned on its own."""
     sq = []
@@ -136,6 +146,7 @@ def run(name: str, robots, rate: float, seed: int, work: Path, recipe: bool) -> 
     rigid = [(placed[r] @ drifted[r])[:, :3, 3] for r in merged]
     row = {"case": name, "rate": rate, "seed": seed, "merged": len(merged), "robots": len(dirs)}
     row |= {"fleetmap": ate(est, tru), "rigid_placement": ate(rigid, tru)}
+    row["fleetmap_by_robot"] = dict(zip(merged, ate_by_robot(est, tru), strict=True))
     row |= {"floor": floor([drifted[r][:, :3, 3] for r in merged], tru)}
     row |= {"graph": report["fleet_graph"], "timing": report["timing_s"]}
     row["fits"] = [  # which pairs merged and how: what the graph started from
@@ -222,7 +233,8 @@ def _line(r: dict) -> str:
         f"ATE cm fleetmap {100 * r['fleetmap']:.2f} rigid placement "
         f"{100 * r['rigid_placement']:.2f} floor {100 * r['floor']:.2f}{rec} | applied "
         f"{g['applied']} closures {g['closures']} intra {g['intra_robot']} rejected "
-        f"{g['rejected']} optimise {g['optimise_s']} s"
+        f"{g['rejected']} optimise {g['optimise_s']} s | by robot "
+        + " ".join(f"{k} {100 * v:.2f}" for k, v in r["fleetmap_by_robot"].items())
     )
 
 
