@@ -19,6 +19,8 @@ ATE: RMSE of the camera positions of every frame of every robot, after one rigid
   (the best any rigid placement can do), pooled over the robots;
 - recipe: the drifted trajectories under the map_merge_3d recipe's transforms (every 10th
   view fused, FPFH + RANSAC + ICP, seed 0).
+Each row also gives every robot's RMSE under fleetmap's one alignment (`fleetmap_by_robot`)
+and the pairs' fits (`fits`); `--keep DIR` keeps every merge's robots and output.
 """
 
 from __future__ import annotations
@@ -77,29 +79,27 @@ def read_tum(path: Path) -> dict[float, np.ndarray]:
     return {round(r[0], 6): r[1:4] for r in rows}
 
 
+def _sq(e: np.ndarray, t: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Squared distances (m^2) of positions e moved by T to their truths t."""
+    return (((e @ T[:3, :3].T + T[:3, 3]) - t) ** 2).sum(1)
+
+
 def ate(est: list[np.ndarray], truth: list[np.ndarray]) -> float:
     """RMSE (m) after one rigid alignment of all the estimated positions to the truth."""
     e, t = np.concatenate(est), np.concatenate(truth)
-    T = kabsch(e, t)
-    return float(np.sqrt((((e @ T[:3, :3].T + T[:3, 3]) - t) ** 2).sum(1).mean()))
+    return float(np.sqrt(_sq(e, t, kabsch(e, t)).mean()))
 
 
 def ate_by_robot(est: list[np.ndarray], truth: list[np.ndarray]) -> list[float]:
     """Each robot's RMSE (m) under `ate`'s one alignment of the whole fleet: which robot
     the pooled figure comes from."""
     T = kabsch(np.concatenate(est), np.concatenate(truth))
-    return [
-        float(np.sqrt((((e @ T[:3, :3].T + T[:3, 3]) - t) ** 2).sum(1).mean()))
-        for e, t in zip(est, truth, strict=True)
-    ]
+    return [float(np.sqrt(_sq(e, t, T).mean())) for e, t in zip(est, truth, strict=True)]
 
 
 def floor(drifted: list[np.ndarray], truth: list[np.ndarray]) -> float:
     """Pooled RMSE with each robot aligned on its own."""
-    sq = []
-    for e, t in zip(drifted, truth, strict=True):
-        T = kabsch(e, t)
-        sq.append((((e @ T[:3, :3].T + T[:3, 3]) - t) ** 2).sum(1))
+    sq = [_sq(e, t, kabsch(e, t)) for e, t in zip(drifted, truth, strict=True)]
     return float(np.sqrt(np.concatenate(sq).mean()))
 
 
