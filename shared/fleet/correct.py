@@ -84,6 +84,26 @@ def overlap_pairs(overlaps: list[dict], stamps: dict[str, np.ndarray]):
     return out
 
 
+def spread_links(pairs, budget: int) -> list[tuple]:
+    """At most `budget` of the link pairs (robot_a, i, robot_b, j), sorted: every pair of
+    robots its share (what one pair cannot use goes to the others), evenly spread over its
+    keyframe pairs. An even spread over all the links gave each pair of robots a share as
+    large as its links: on the drifted HoloLens walk (three robots, 1 deg/m) the second
+    look's fit of A and C made 192 of the 527 links, took 22 of the 60 ICPs and kept none,
+    and A stood on 6 depth closures with B (ATE 2.83 cm; 1.51 shared out; four drifted
+    rows 2.03 -> 1.80 cm on average, one 1.29 -> 1.69: docs/BENCHMARKS.md, session 37)."""
+    groups: dict = {}
+    for q in sorted(pairs):
+        groups.setdefault(tuple(sorted((q[0], q[2]))), []).append(q)
+    out, left = [], budget
+    for n, key in enumerate(sorted(groups, key=lambda k: (len(groups[k]), k))):
+        qs = groups[key]
+        take = min(len(qs), left // (len(groups) - n))
+        left -= take
+        out += [qs[k] for k in np.linspace(0, len(qs) - 1, take).astype(int)] if take else []
+    return sorted(out)
+
+
 def fit_closures(pairs, poses: dict[str, np.ndarray], edges: dict) -> list[Closure]:
     """Each pairwise fit as a closure at each overlap of its pair: the keyframes' relative
     pose that the fit T_a_b implies there."""
@@ -223,7 +243,7 @@ def link_closures(
     robots verify by features (the HoloLens walk: 4 of 44 closures); these tie the two
     maps wherever their surfaces meet, without needing a matched feature."""
     stamps = {r: np.array([k.frame.stamp for k in kfs]) for r, kfs in keyframes.items()}
-    pairs = sorted(overlap_pairs(by_source(overlaps, "link"), stamps))
+    pairs = overlap_pairs(by_source(overlaps, "link"), stamps)
     trial = link_trials(pairs, poses, edges, params, solved)
     icp = dataclasses.replace(params, tol_m=params.link_tol_m)
     refined = refine_with_depth(trial, keyframes, icp, clouds)  # `clouds`: kept by the caller
@@ -232,13 +252,12 @@ def link_closures(
 
 def link_trials(pairs, poses: dict, edges: dict, params: ClosureParams, solved=None):
     """Closures to refine at link pairs (robot_a, i, robot_b, j) of fitted robots, at most
-    `params.max_links` evenly spread, each with the relative pose to start ICP from: the
-    graph's where `solved` (each robot's keyframe poses in the reference frame) is given,
-    else the pairwise fit's. A rigid fit of two bent maps is right where it was fitted
-    and off by the bend elsewhere, beyond ICP's reach; the graph's solution is not."""
-    fits = fit_closures(pairs, poses, edges)
-    if len(fits) > params.max_links:
-        fits = [fits[k] for k in np.linspace(0, len(fits) - 1, params.max_links).astype(int)]
+    `params.max_links` (`spread_links`), each with the relative pose to start ICP from:
+    the graph's where `solved` (each robot's keyframe poses in the reference frame) is
+    given, else the pairwise fit's. A rigid fit of two bent maps is right where it was
+    fitted and off by the bend elsewhere, beyond ICP's reach; the graph's solution is not."""
+    fitted = [q for q in pairs if (q[0], q[2]) in edges or (q[2], q[0]) in edges]
+    fits = fit_closures(spread_links(fitted, params.max_links), poses, edges)
     if solved is not None:
         fits = [
             dataclasses.replace(c, T_a_b=invert(solved[c.robot_a][c.i]) @ solved[c.robot_b][c.j])

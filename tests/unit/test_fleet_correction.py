@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from fleetmap.fleet.correct import CorrectionParams, correct_fleet, drift_bound
+from fleetmap.fleet.correct import CorrectionParams, correct_fleet, drift_bound, spread_links
 
 
 def _robot(length_m: float, n: int = 12) -> list:
@@ -84,3 +84,23 @@ def test_a_depth_closure_pins_only_the_directions_its_surfaces_face():
     normals = np.concatenate([np.tile(n, (len(u), 1)) for n in faces])
     info = surface_information(_cloud(pts), _cloud(pts, normals), np.eye(4), 0.02)
     assert np.linalg.eigvalsh(info).min() > 0.05
+
+
+def test_link_trials_share_the_budget_by_robot_pair():
+    """Of 200 link pairs of A-B and 20 of A-C, a budget of 30 gives each pair of robots 15,
+    evenly spread over its keyframe pairs (an even spread over all 220 gave A-C 3: on the
+    drifted HoloLens walk the second look's A-C fit took 22 of the 60 ICPs, kept none and
+    left A-B with 6 closures; docs/BENCHMARKS.md, session 37); a pair of robots with fewer
+    than its share leaves the rest to the others."""
+    rng = np.random.default_rng(0)
+    pairs = {("A", i, "B", int(rng.integers(50))) for i in range(200)}
+    pairs |= {("A", i, "C", i + 3) for i in range(20)}
+    chosen = spread_links(pairs, 30)
+    assert chosen == sorted(chosen) and len(set(chosen)) == 30
+    ab, ac = ([q for q in chosen if q[2] == r] for r in "BC")
+    all_ab = sorted(q for q in pairs if q[2] == "B")
+    assert ab == [all_ab[k] for k in np.linspace(0, 199, 15).astype(int)]
+    assert [q[1] for q in ac] == np.linspace(0, 19, 15).astype(int).tolist()
+    few = {q for q in pairs if q[2] == "B"} | {("A", i, "C", 0) for i in range(4)}
+    assert sum(q[2] == "B" for q in spread_links(few, 30)) == 26  # A-C takes its 4
+    assert spread_links(pairs, 500) == sorted(pairs)  # under the budget: every one
