@@ -100,7 +100,7 @@ def spread_links(pairs, budget: int) -> list[tuple]:
         qs = groups[key]
         take = min(len(qs), left // (len(groups) - n))
         left -= take
-        out += [qs[k] for k in np.linspace(0, len(qs) - 1, take).astype(int)] if take else []
+        out += [qs[k] for k in np.linspace(0, len(qs) - 1, take).astype(int)]
     return sorted(out)
 
 

@@ -230,7 +230,7 @@ class LiveGraph:
                         if o.kf_a in index and o.kf_b in index:
                             pairs.add((*index[o.kf_a], *index[o.kf_b]))
         cp = self.params.closure
-        fits = link_trials(sorted(pairs), poses, edges, cp, solved)
+        fits = link_trials(pairs, poses, edges, cp, solved)  # `spread_links` orders them
         icp, out = dataclasses.replace(cp, tol_m=cp.link_tol_m), []
         for c in fits:
             ids = (kfs[c.robot_a][c.i].kf_id, kfs[c.robot_b][c.j].kf_id)
