@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -272,7 +272,11 @@ class SeenDepth:
 
 
 def free_space_check(
-    points: np.ndarray, views: Iterable, margin: float = 0.05, rel_margin: float = 0.02
+    points: np.ndarray,
+    views: Iterable,
+    margin: float = 0.05,
+    rel_margin: float = 0.02,
+    floor: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[int, int, int]:
     """How well points (N, 3), in the views' map frame, agree with what the views' depth saw.
 
@@ -292,7 +296,9 @@ def free_space_check(
     that bend (drift) and look-alike places keep more firm ones (docs/ALIGNER.md).
 
     `views`: RGB-D views or their `SeenDepth` (which keep the nearest-reading images between
-    calls). Returns (supports, conflicts, firm conflicts) summed over views."""
+    calls). `floor`: tol at least floor(depth read), the readings' noise at their depths
+    (`fleetmap.depth_noise.DepthNoise`). Returns (supports, conflicts, firm conflicts)
+    summed over views."""
     support = conflict = firm = 0
     pts = np.asarray(points, np.float64)
     for v in views:
@@ -309,6 +315,8 @@ def free_space_check(
         d[ok] = seen.depth[w[ok], u[ok]]
         ok &= d > 0
         tol = margin + rel_margin * d
+        if floor is not None:
+            tol = np.maximum(tol, floor(d))
         support += int(np.count_nonzero(ok & (np.abs(z - d) <= tol)))
         idx = np.flatnonzero(ok & (z < d - tol))
         conflict += len(idx)

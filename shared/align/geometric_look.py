@@ -20,7 +20,9 @@ recall bench 0.56-0.92, wrong ones with the free space clean -0.38 or less), whi
 space, judged tightly, refuses slides (wrong ones with a correlation of 0.5 or more: firm
 consistency 0.82 or less). A merge needs both, both ways, on the gate's overlap, and no
 other basin that passes as far away as the gate's rivals (`rival_m`, `rival_deg`). Every
-length follows the scene's median depth.
+length follows the scene's median depth, and the free space is judged no tighter than
+the depth noise the two robots' own views show at each depth (`GeometricLook.noise_k`,
+`fleetmap.depth_noise`).
 """
 
 from __future__ import annotations
@@ -150,15 +152,16 @@ def _land(found: list[list], T: np.ndarray, probe: np.ndarray, voxel: float) -> 
     found.append([T, 1])
 
 
-def judge(T: np.ndarray, clouds, seen, voxel: float) -> Judged:
+def judge(T: np.ndarray, clouds, seen, voxel: float, floor=None) -> Judged:
     """Overlap, firm free-space consistency (at half a voxel, of the points off depth
-    edges: `ViewsCloud.off_edges`) and grey-level correlation of an alignment, both ways.
+    edges: `ViewsCloud.off_edges`; no tighter than `floor` of the depth read, the depth's
+    noise: `_PairClouds.noise_floor`) and grey-level correlation of an alignment, both ways.
     `seen`: each robot's views as `SeenDepth`."""
     half = voxel / 2
     ca, cb = clouds[0].at(half), clouds[1].at(half, normals=False)  # B's: points, colours
     pa, pb = (c.off_edges(2 * voxel) for c in clouds)
-    s_b, _, f_b = free_space_check(apply(T, pb), seen[0], margin=half, rel_margin=0.0)
-    s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], margin=half, rel_margin=0.0)
+    s_b, _, f_b = free_space_check(apply(T, pb), seen[0], half, 0.0, floor)
+    s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], half, 0.0, floor)
     r, n = grey_correlation(ca, cb, T, half)
     return Judged(
         T,
@@ -199,8 +202,9 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
 
 
 def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
-    """T's firm free-space consistency judged as this look judges (`judge` at its voxel: a
-    sensor's noise at the scene's depth), the smaller way."""
+    """T's firm free-space consistency judged at this look's voxel (`judge` at half of it,
+    2.5% of the scene's depth), the smaller way: without the look's noise floor, the
+    margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session 38)."""
     return min(judge(T, pair.clouds(), pair.seen(), look_voxel(p, depth)).firm)
 
 
@@ -214,13 +218,13 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     few = min(len(c.at(voxel).points) for c in clouds)
     if few < MIN_POINTS:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
-    seen = pair.seen()  # kept for `choose` and the pinning too
+    seen, floor = pair.seen(), pair.noise_floor(look.noise_k)  # `seen`: for `choose` too
     judged, found = [], basins(clouds, voxel, look, p.min_overlap)
     ca, cb, screen = clouds[0].at(voxel), clouds[1].at(voxel), look.min_correlation - COARSE_SLACK
     coarse = [grey_correlation(ca, cb, T, voxel)[0] for T, _ in found]
     for (T, n), r in zip(found, coarse, strict=True):
         if r >= screen:  # NaN (under 30 points meet) is not
-            j = judge(refine(T, clouds, voxel), clouds, seen, voxel)
+            j = judge(refine(T, clouds, voxel), clouds, seen, voxel, floor)
             j.seeds = n
             judged.append(j)
     passing = sorted((j for j in judged if j.passes(look, p)), key=lambda j: -j.score)
@@ -240,7 +244,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         if far:
             return AlignResult(False, f"ambiguous: another alignment {far} away passes too")
     h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
-    refined = judge(h.T_a_b, clouds, seen, voxel)
+    refined = judge(h.T_a_b, clouds, seen, voxel, floor)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
         slid = beyond_rivals(h.T_a_b, win.T_a_b, probe, p)
         if slid:  # unless it slid as far as a rival: no basin holds there

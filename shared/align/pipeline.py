@@ -42,6 +42,7 @@ from fleetmap.align.second_look import affine_matches
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import holdout_residual, spread_m
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
+from fleetmap.depth_noise import DepthNoise
 from fleetmap.errors import BadInput
 from fleetmap.estimators import MLPEstimator
 from fleetmap.geometry import apply, displacement_rms, invert, residuals, transform_error
@@ -117,7 +118,7 @@ class _PairClouds:
 
     def __init__(self, pairs):
         self.views = unique_views(pairs, 0), unique_views(pairs, 1)
-        self._clouds = self._seen = None
+        self._clouds = self._seen = self._noise = None
         self.memo: dict = {}
 
     def clouds(self) -> tuple[ViewsCloud, ViewsCloud]:
@@ -131,6 +132,18 @@ class _PairClouds:
         if self._seen is None:
             self._seen = tuple([SeenDepth(v) for v in views] for views in self.views)
         return self._seen
+
+    def noise_floor(self, k: float):
+        """The third look's free-space margin at each depth read (metres -> metres): k
+        times the spread between one robot's reading and the other's (`DepthNoise`,
+        measured on each robot's views once); None where k is 0."""
+        if not k:
+            return None
+        if self._noise is None:
+            a, b = (DepthNoise.measure(views) for views in self.views)
+            self._noise = a.between(b)
+        noise = self._noise
+        return lambda depth: k * noise(depth)
 
 
 def _align(

@@ -56,8 +56,11 @@ class GeometricLook:
     # the two maps' plane frames and their best translations, those where the most
     # occupied cells meet (0: none)
     plane_starts: int = 16
-    # firm free-space consistency each way, judged at half a voxel (2.5% of the depth)
+    # firm free-space consistency each way, judged at half a voxel (2.5% of the depth) or
+    # at `noise_k` times the spread the two robots' own depth readings show at each depth
+    # (`fleetmap.depth_noise`), whichever is wider
     min_consistency: float = 0.9
+    noise_k: float = 2.0
     # grey levels of the points that meet (within half a voxel), Pearson
     min_correlation: float = 0.5
 
@@ -66,6 +69,8 @@ class GeometricLook:
             raise ValueError(
                 "the third look needs seeds >= 1, iterations >= 1, voxel_rel > 0, plane_starts >= 0"
             )
+        if not self.noise_k >= 0:
+            raise ValueError(f"the third look's noise_k must be 0 (off) or more: {self.noise_k}")
         if not (0 <= self.min_consistency <= 1 and -1 <= self.min_correlation <= 1):
             raise ValueError("min_consistency must lie in [0, 1], min_correlation in [-1, 1]")
 
