@@ -24,8 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.camera import backproject_pixels, depth_to_points
-from fleetmap.geometry import apply, invert
+from fleetmap.mapcloud import SeenDepth, off_edge_points
 
 #: depth bands (metres): half a metre wide where cameras see most, wider beyond
 EDGES = np.array([0.0, 0.75, 1.25, 1.75, 2.25, 2.75, 3.25, 3.75, 4.5, 5.5, 7.0])
@@ -74,28 +73,16 @@ class DepthNoise:
 def _differences(views: Sequence, stride: int, max_depth: float):
     """(depth read, point's depth - depth read) of every view's pixels seen in every other
     view, within `WINDOW_REL` x depth + `WINDOW_M`."""
-    points = []
-    for v in views:
-        p, uv = depth_to_points(v.depth, v.intrinsics, stride, max_depth)
-        ok = backproject_pixels(uv, v.depth, v.intrinsics, max_depth)[1]
-        points.append(apply(v.T_map_cam, p[ok]))
+    points = [off_edge_points(v, stride, max_depth) for v in views]
     read, diff = [np.zeros(0)], [np.zeros(0)]
     for j, v in enumerate(views):
-        K, T_cam_map = v.intrinsics, invert(v.T_map_cam)
-        metres = v.depth.astype(np.float64) / K.depth_scale
-        h, w = metres.shape
+        seen = SeenDepth(v)
         for i, pts in enumerate(points):
             if i == j or not len(pts):
                 continue
-            q = apply(T_cam_map, pts)
-            front = q[:, 2] > 0.1
-            uv = np.round(K.project(np.where(front[:, None], q, 1.0))).astype(np.int64)
-            ok = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            d = np.zeros(len(q))
-            d[ok] = metres[uv[ok, 1], uv[ok, 0]]
-            ok &= d > 0
-            r = q[ok, 2] - d[ok]
-            near = np.abs(r) < WINDOW_REL * d[ok] + WINDOW_M
-            read.append(d[ok][near])
+            z, d, _, _ = seen.read(pts)
+            r = z - d
+            near = (d > 0) & (np.abs(r) < WINDOW_REL * d + WINDOW_M)
+            read.append(d[near])
             diff.append(r[near])
     return np.concatenate(read), np.concatenate(diff)

@@ -142,14 +142,18 @@ class ViewsCloud:
         rule) may mix the depths of both sides of the edge (mixed, "flying" pixels: time of
         flight and structured light alike) and float in space its own camera saw empty."""
         if voxel not in self._off_edges:
-            parts = []
-            for v in self.views:
-                p, uv = depth_to_points(v.depth, v.intrinsics, self.stride, self.max_depth)
-                ok = backproject_pixels(uv, v.depth, v.intrinsics, self.max_depth)[1]
-                parts.append(apply(v.T_map_cam, p[ok]))
+            parts = [off_edge_points(v, self.stride, self.max_depth) for v in self.views]
             cloud = MapCloud(np.concatenate(parts), None).o3d(voxel, normals=False)
             self._off_edges[voxel] = np.asarray(cloud.points)
         return self._off_edges[voxel]
+
+
+def off_edge_points(view, stride: int = 4, max_depth: float = 6.0) -> np.ndarray:
+    """One view's every `stride`-th pixel off depth edges (`ViewsCloud.off_edges`' rule),
+    as points of shape (M, 3) in the map frame."""
+    p, uv = depth_to_points(view.depth, view.intrinsics, stride, max_depth)
+    ok = backproject_pixels(uv, view.depth, view.intrinsics, max_depth)[1]
+    return apply(view.T_map_cam, p[ok])
 
 
 def icp(
@@ -270,6 +274,22 @@ class SeenDepth:
             )
         return self._nearest[k]
 
+    def read(self, points: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Points of shape (N, 3) in the map frame as this view sees them: each one's depth
+        z along the camera's axis, its pixel (u, w), and the depth d this view read there
+        (metres; 0 where it read none, or the point lies behind the camera or outside the
+        image)."""
+        p = points @ self.T_cam_map[:3, :3].T + self.T_cam_map[:3, 3]
+        z = p[:, 2]
+        front = z > 0.1
+        uv = np.round(self.intrinsics.project(np.where(front[:, None], p, 1.0))).astype(np.int64)
+        u, w = uv[:, 0], uv[:, 1]
+        h, wd = self.depth.shape
+        ok = front & (u >= 0) & (u < wd) & (w >= 0) & (w < h)
+        d = np.zeros(len(p))
+        d[ok] = self.depth[w[ok], u[ok]]
+        return z, d, u, w
+
 
 def free_space_check(
     points: np.ndarray,
@@ -303,17 +323,8 @@ def free_space_check(
     pts = np.asarray(points, np.float64)
     for v in views:
         seen = v if isinstance(v, SeenDepth) else SeenDepth(v)
-        K, T = seen.intrinsics, seen.T_cam_map
-        p = pts @ T[:3, :3].T + T[:3, 3]
-        z = p[:, 2]
-        front = z > 0.1
-        uv = np.round(K.project(np.where(front[:, None], p, 1.0))).astype(np.int64)
-        u, w = uv[:, 0], uv[:, 1]
-        h, wd = seen.depth.shape
-        ok = front & (u >= 0) & (u < wd) & (w >= 0) & (w < h)
-        d = np.zeros(len(p))
-        d[ok] = seen.depth[w[ok], u[ok]]
-        ok &= d > 0
+        z, d, u, w = seen.read(pts)
+        ok = d > 0
         tol = margin + rel_margin * d
         if floor is not None:
             tol = np.maximum(tol, floor(d))
@@ -322,7 +333,7 @@ def free_space_check(
         conflict += len(idx)
         if not len(idx):
             continue
-        radius = tol[idx] * K.fx / z[idx]
+        radius = tol[idx] * seen.intrinsics.fx / z[idx]
         level = np.searchsorted(SeenDepth.RADII, radius, side="right") - 1
         for k in np.unique(level):
             sel = idx[level == k]
