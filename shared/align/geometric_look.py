@@ -52,6 +52,13 @@ MIN_POINTS = 200
 #: within 0.18), and none of those under 0.1 before reached 0.26 after
 COARSE_SLACK = 0.45
 
+#: a basin whose firm free-space consistency (`firm_ways`, as judged) is under the look's
+#: bar minus this before refining is not refined nor judged: refining at half a voxel
+#: raised it by 0.06 at most over the basins of 13 seed-48 pairs (docs/ALIGNER.md, session
+#: 39), and 70% of the basins sit that low; refining them was a quarter of a refused
+#: HoloLens pair's alignment
+FIRM_SLACK = 0.2
+
 
 @dataclass
 class Judged:
@@ -159,17 +166,23 @@ def judge(T: np.ndarray, clouds, seen, voxel: float, floor=None) -> Judged:
     `seen`: each robot's views as `SeenDepth`."""
     half = voxel / 2
     ca, cb = clouds[0].at(half), clouds[1].at(half, normals=False)  # B's: points, colours
-    pa, pb = (c.off_edges(2 * voxel) for c in clouds)
-    s_b, _, f_b = free_space_check(apply(T, pb), seen[0], half, 0.0, floor)
-    s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], half, 0.0, floor)
     r, n = grey_correlation(ca, cb, T, half)
     return Judged(
         T,
         (overlap_fitness(cb, ca, T, half), overlap_fitness(ca, cb, invert(T), half)),
-        (s_b / max(s_b + f_b, 1), s_a / max(s_a + f_a, 1)),
+        firm_ways(T, clouds, seen, voxel, floor),
         r if np.isfinite(r) else -1.0,
         n,
     )
+
+
+def firm_ways(T: np.ndarray, clouds, seen, voxel: float, floor=None) -> tuple[float, float]:
+    """T's firm free-space consistency each way (B's points in A's views, A's in B's), as
+    `judge` counts it: the points off depth edges, at half a voxel or `floor`."""
+    pa, pb = (c.off_edges(2 * voxel) for c in clouds)
+    s_b, _, f_b = free_space_check(apply(T, pb), seen[0], voxel / 2, 0.0, floor)
+    s_a, _, f_a = free_space_check(apply(invert(T), pa), seen[1], voxel / 2, 0.0, floor)
+    return s_b / max(s_b + f_b, 1), s_a / max(s_a + f_a, 1)
 
 
 def look_voxel(p: AlignParams, depth: float) -> float:
@@ -205,7 +218,7 @@ def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
     """T's firm free-space consistency judged at this look's voxel (`judge` at half of it,
     2.5% of the scene's depth), the smaller way: without the look's noise floor, the
     margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session 38)."""
-    return min(judge(T, pair.clouds(), pair.seen(), look_voxel(p, depth)).firm)
+    return min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth)))
 
 
 def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
@@ -219,23 +232,13 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     if few < MIN_POINTS:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
     seen, floor = pair.seen(), pair.noise_floor(look.noise_k)  # `seen`: for `choose` too
-    judged, found = [], basins(clouds, voxel, look, p.min_overlap)
-    ca, cb, screen = clouds[0].at(voxel), clouds[1].at(voxel), look.min_correlation - COARSE_SLACK
-    coarse = [grey_correlation(ca, cb, T, voxel)[0] for T, _ in found]
-    for (T, n), r in zip(found, coarse, strict=True):
-        if r >= screen:  # NaN (under 30 points meet) is not
-            j = judge(refine(T, clouds, voxel), clouds, seen, voxel, floor)
-            j.seeds = n
-            judged.append(j)
+    found = basins(clouds, voxel, look, p.min_overlap)
+    judged, why = judged_basins(found, clouds, seen, voxel, look, floor)
+    if why:
+        return AlignResult(False, f"no alignment passes: {why}")
     passing = sorted((j for j in judged if j.passes(look, p)), key=lambda j: -j.score)
     log.info("geometric look: %d basins, %d judged, %d pass", len(found), len(judged), len(passing))
     if not passing:
-        if not judged:
-            r = max((x for x in coarse if np.isfinite(x)), default=float("nan"))
-            return AlignResult(
-                False, f"no alignment passes: grey-level correlation at best {r:.2f} before "
-                f"refining (judged from {screen:.2f}, need {look.min_correlation})",
-            )  # fmt: skip
         best = max(judged, key=lambda j: j.score)
         return AlignResult(False, f"no alignment passes: at best {best.why_not(look, p)}")
     win, probe = passing[0], probe_points(clouds[1].at(voxel))
@@ -263,6 +266,37 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         "fpfh+icp" + h.source.removeprefix("fpfh"),
         fitness=refined.overlap[0],
         hypotheses=[h.summary()],
+    )
+
+
+def judged_basins(found, clouds, seen, voxel: float, look: GeometricLook, floor):
+    """The basins (`basins`) worth refining, refined (`refine`) and judged (`judge`): those
+    whose grey levels correlate at least `min_correlation` - `COARSE_SLACK` and whose firm
+    free space holds at least `min_consistency` - `FIRM_SLACK` before refining. Returns
+    ([Judged], "") or ([], why none was judged)."""
+    ca, cb = clouds[0].at(voxel), clouds[1].at(voxel)
+    screen, firm_bar = look.min_correlation - COARSE_SLACK, look.min_consistency - FIRM_SLACK
+    coarse = [grey_correlation(ca, cb, T, voxel)[0] for T, _ in found]
+    judged, firms = [], []
+    for (T, n), r in zip(found, coarse, strict=True):
+        if not r >= screen:  # NaN (under 30 points meet) is not
+            continue
+        firms.append(min(firm_ways(T, clouds, seen, voxel, floor)))
+        if firms[-1] >= firm_bar:
+            j = judge(refine(T, clouds, voxel), clouds, seen, voxel, floor)
+            j.seeds = n
+            judged.append(j)
+    if judged:
+        return judged, ""
+    if firms:
+        return [], (
+            f"firm free-space consistency at best {max(firms):.2f} before refining (judged "
+            f"from {firm_bar:.2f}, need {look.min_consistency})"
+        )
+    r = max((x for x in coarse if np.isfinite(x)), default=float("nan"))
+    return [], (
+        f"grey-level correlation at best {r:.2f} before refining (judged from {screen:.2f}, "
+        f"need {look.min_correlation})"
     )
 
 

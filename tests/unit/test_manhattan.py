@@ -85,21 +85,28 @@ def _windows(hololens):
     return clouds, np.loadtxt(hololens / "T_a_b.txt")
 
 
-def test_the_screen_skips_only_basins_that_could_not_pass(hololens):
+def test_the_screens_skip_only_basins_that_could_not_pass(hololens):
     """The third look refines and judges only basins whose grey levels correlate at least
-    `min_correlation` - `COARSE_SLACK` before refining. On the same windows, every basin it
-    skips correlates under the bar after refining too, and the basin at the truth is kept."""
+    `min_correlation` - `COARSE_SLACK` and whose firm free space holds at least
+    `min_consistency` - `FIRM_SLACK` before refining (judged at the robots' depth noise, as
+    the look judges). On the same windows, every basin either screen skips stays under its
+    bar after refining too, and the basin at the truth is kept."""
     from fleetmap.align import geometric_look as G
     from fleetmap.align.hypotheses import probe_points
     from fleetmap.align.types import GeometricLook
+    from fleetmap.depth_noise import DepthNoise
     from fleetmap.geometry import displacement_rms
+    from fleetmap.mapcloud import SeenDepth
 
     clouds, T_true = _windows(hololens)
     voxel, look = 0.12, GeometricLook(seeds=4, iterations=20_000, plane_starts=16)
     probe = probe_points(clouds[1].at(voxel))
     ca, cb = (c.at(voxel) for c in clouds)
     fa, fb = (c.at(voxel / 2) for c in clouds)
-    skipped = kept_truth = 0
+    seen = [[SeenDepth(v) for v in c.views] for c in clouds]
+    noise = DepthNoise.measure(clouds[0].views).between(DepthNoise.measure(clouds[1].views))
+    floor = lambda depth: look.noise_k * noise(depth)  # noqa: E731 (as `noise_floor` gives)
+    skipped = unfirm = kept_truth = 0
     for T, _ in G.basins(clouds, voxel, look, 0.1):
         before = G.grey_correlation(ca, cb, T, voxel)[0]
         fine = G.refine(T, clouds, voxel)
@@ -107,6 +114,12 @@ def test_the_screen_skips_only_basins_that_could_not_pass(hololens):
             skipped += 1
             after = G.grey_correlation(fa, fb, fine, voxel / 2)[0]
             assert not after >= look.min_correlation, (before, after)
+            continue
+        firm = min(G.firm_ways(T, clouds, seen, voxel, floor))
+        if firm < look.min_consistency - G.FIRM_SLACK:
+            unfirm += 1
+            after = min(G.firm_ways(fine, clouds, seen, voxel, floor))
+            assert after < look.min_consistency, (firm, after)
         elif displacement_rms(fine, T_true, probe) < 0.1:
             kept_truth += 1
-    assert skipped and kept_truth, (skipped, kept_truth)
+    assert skipped and unfirm and kept_truth, (skipped, unfirm, kept_truth)
