@@ -54,9 +54,9 @@ COARSE_SLACK = 0.45
 
 #: a basin whose firm free-space consistency (`firm_ways`, as judged) is under the look's
 #: bar minus this before refining is not refined nor judged: refining at half a voxel
-#: raised it by 0.06 at most over the basins of 13 seed-48 pairs (docs/ALIGNER.md, session
-#: 39), and 70% of the basins sit that low; refining them was a quarter of a refused
-#: HoloLens pair's alignment
+#: raised it by 0.068 at most over 198 basins of 13 pairs through a D435's noise, 0.083
+#: over 109 of 8 others (docs/ALIGNER.md, session 39), and 58-69% of the basins sit that
+#: low; refining and judging them was a quarter of a refused HoloLens pair's alignment
 FIRM_SLACK = 0.2
 
 
