@@ -215,9 +215,10 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
 
 
 def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
-    """T's firm free-space consistency judged at this look's voxel (`judge` at half of it,
-    2.5% of the scene's depth), the smaller way: without the look's noise floor, the
-    margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session 38)."""
+    """T's firm free-space consistency at this look's voxel (`firm_ways`, as `judge` counts
+    it, at half of it: 2.5% of the scene's depth), the smaller way: without the look's noise
+    floor, the margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session
+    38)."""
     return min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth)))
 
 
