@@ -72,6 +72,7 @@ COST_S = {
     "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 48,
     "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 67,
     "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 57,
+    "tests/e2e/test_recall.py::test_room_a_pull_whose_icp_finds_no_place_is_merged": 55,
     "tests/e2e/test_recall.py::"
     "test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_merge": 35,
     APART[2]: 47,
@@ -96,6 +97,9 @@ COST_S = {
     "tests/unit/test_matching_mutual.py": 9,
     f"{_PARTS}[part_a1-part_b1-False]": 9,
     f"{_PARTS}[part_a4-part_b4-True]": 8,
+    "tests/e2e/test_recall.py::test_a_desk_seen_from_1_5_times_as_far_through_a_d435_is_merged": 15,
+    "tests/e2e/test_recall.py::"
+    "test_a_room_seen_through_more_noise_than_the_third_look_can_judge_is_not_merged": 15,
     "tests/e2e/test_recall.py::test_second_look_merges_only_what_its_matches_pin": 8,
     "tests/process/test_robustness.py": 8,
     "tests/api/test_live_recall.py": 7,

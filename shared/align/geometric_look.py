@@ -193,10 +193,12 @@ def look_voxel(p: AlignParams, depth: float) -> float:
 
 def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: float) -> bool:
     """Whether the maps' geometry refuses an alignment T_near that the matches prefer near a
-    merge T and leads back from it to T (`pinning.pinned_or_refused`): its firm free-space
-    consistency (`judge`) under even the first look's bar (`min_consistency`, 0.7, the
-    laxest the gate asks; the look's own is 0.9), and ICP from it (`refine`, point-to-plane
-    at half a voxel) landing within the map's own voxel (`voxel_m`) of T.
+    merge T and leads back from it to T or to no place this look would merge
+    (`pinning.pinned_or_refused`): its firm free-space consistency (`judge`) under even the
+    first look's bar (`min_consistency`, 0.7, the laxest the gate asks; the look's own is
+    0.9), and ICP from it (`refine`, point-to-plane at half a voxel) landing within the
+    map's own voxel (`voxel_m`) of T or where the free space is firm under the look's own
+    bar, judged as the look judges (`firm_ways` at the robots' depth noise).
 
     Where the surfaces slide along each other (what the matches' pinning guards against), an
     alignment along the slide keeps its free space and ICP leaves it near where it is: a
@@ -206,12 +208,19 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
     pair through that noise, 6.4-7.0 cm off, the pull at firm 0.84-0.88, its refinement just
     beyond the voxel. At a right merge (HoloLens, 18% shared, 2.9 cm) the matches preferred
     one 21 cm off at firm 0.52-0.58 (ten pairs of map frames), whose refinement lands 5-19
-    mm from the merge (docs/ALIGNER.md, session 34)."""
+    mm from the merge (docs/ALIGNER.md, session 34). A HoloLens pair at 0.4 of its size,
+    B another camera, merged 3.0-4.3 cm off (firm 0.96-0.97 at the noise, the truth's
+    too), had the matches prefer one 55 cm off at firm 0.21-0.25 whose refinement slid
+    17-27 cm off, to firm 0.51 (no noise floor) or 0.85 (at it) (session 40)."""
     if firm_at_noise(T_near, pair, p, depth) >= p.min_consistency:
         return False
     voxel, clouds = look_voxel(p, depth), pair.clouds()
     probe = probe_points(clouds[1].at(voxel))
-    return displacement_rms(refine(T_near, clouds, voxel), T, probe) < p.voxel_m
+    T_back = refine(T_near, clouds, voxel)
+    if displacement_rms(T_back, T, probe) < p.voxel_m:
+        return True
+    floor = pair.noise_floor(p.geometric.noise_k)
+    return min(firm_ways(T_back, clouds, pair.seen(), voxel, floor)) < p.geometric.min_consistency
 
 
 def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
@@ -220,6 +229,23 @@ def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
     floor, the margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session
     38)."""
     return min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth)))
+
+
+def blurred(blur: float, voxel: float, depth: float) -> str:
+    """Why this look does not judge where the free-space margin at the scene's depth (the
+    noise floor, `blur`, metres) is wider than its voxel: there the free space cannot tell
+    alignments a voxel apart, and the look would rest on grey levels alone. Recall seed 53
+    (the rooms at twice their size through a D435's noise: the readings of the two robots
+    spread 11.7 cm at the HoloLens windows' median depth of 4.8 m, a floor of 23 cm over a
+    15 cm voxel) merged a HoloLens pair 24 cm off (at the recording's size) at firm 0.98,
+    correlation 0.52, the truth firm 0.99; in that draw and seed 51's (1.5 times, floors
+    6-12 cm under 7.5-15 cm voxels) the look merged nothing else (docs/ALIGNER.md, session
+    40)."""
+    return (
+        f"at the scene's depth ({depth:.1f} m) the robots' depth noise widens the free-space "
+        f"margin to {blur:.2f} m, beyond this look's {voxel:.2f} m voxel: its free space "
+        "cannot tell alignments a voxel apart"
+    )
 
 
 def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
@@ -233,6 +259,9 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     if few < MIN_POINTS:
         return AlignResult(False, f"{few} points at a {voxel:.2f} m voxel (need {MIN_POINTS})")
     seen, floor = pair.seen(), pair.noise_floor(look.noise_k)  # `seen`: for `choose` too
+    blur = float(floor(np.array([depth]))[0]) if floor else 0.0
+    if blur > voxel:
+        return AlignResult(False, blurred(blur, voxel, depth))
     found = basins(clouds, voxel, look, p.min_overlap)
     judged, why = judged_basins(found, clouds, seen, voxel, look, floor)
     if why:

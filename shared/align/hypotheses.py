@@ -112,6 +112,21 @@ def _judge(h: Hypothesis, cloud_b, cloud_a, views_a, views_b, margin: float, fit
     h.fitness = overlap_fitness(cloud_b, cloud_a, h.T_a_b, fit_d)
 
 
+def consistency_at_noise(T: np.ndarray, clouds, views_a, views_b, p: AlignParams, floor) -> float:
+    """T's free-space consistency as `choose` judges it on the fine clouds (margin 1.5
+    voxels and 2% of the depth), with tol no tighter than `floor(depth)`: the spread
+    between the two robots' readings at that depth (`_PairClouds.noise_floor`, the third
+    look's). Under the fixed margin a D435 seen from 3 m (3.3 cm RMS a reading) puts right
+    surfaces in each other's seen-empty space: two TUM desk pairs at 1.5 times their size,
+    4.7 and 5.8 cm from the truth, scored 0.69 and 0.68 (need 0.7), 0.79 at the noise
+    (docs/ALIGNER.md, session 40)."""
+    v1 = p.voxel_m
+    pb, pa = np.asarray(clouds[1].at(v1, normals=False).points), np.asarray(clouds[0].at(v1).points)
+    s1, c1, _ = free_space_check(apply(T, pb), _seen(views_a), 1.5 * v1, floor=floor)
+    s2, c2, _ = free_space_check(apply(invert(T), pa), _seen(views_b), 1.5 * v1, floor=floor)
+    return (s1 + s2) / max(s1 + s2 + c1 + c2, 1)
+
+
 def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, int]:
     """Truncated mean residual of the raw matches under T, and how many are within tol."""
     if not len(R):
@@ -120,13 +135,15 @@ def _visual_cost(T: np.ndarray, R: Correspondences, tol: float) -> tuple[float, 
     return float(np.minimum(r, tol).mean()), int(np.count_nonzero(r < tol))
 
 
-def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, memo=None):
+def choose(
+    hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, memo=None, noisy=None
+):
     """Coarse: point-to-plane ICP of every distinct hypothesis on coarse clouds, judged by
     the free-space test; those that keep visual support (at least `min_inliers` raw
     matches agreeing) are judged again on the fine clouds, the best few; the winner is
     refined two ways (fine point-to-plane ICP, multi-scale coloured ICP) and the refinement
-    the raw matches agree with best is kept. Returns (best, distinct rivals
-    judged the same way).
+    the raw matches agree with best is kept. Returns (best, distinct rivals judged the same
+    way). `noisy`: the gate's judging at the robots' depth noise (`refused_whatever_refined`).
 
     Why two refinements: in a room of floor, walls and desks, fine point-to-plane ICP
     slides along the planes (SUN3D: 8-12 cm from the ground truth, started at the ground
@@ -136,12 +153,10 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
     cm geometric). The matches decide where they can tell (`ranked`: agreeing within 4 cm,
     beyond the counts' noise), the depth where they cannot: on 17 recall pairs the depth
     alone chose the worse refinement 6 times (up to 7.0 against 2.7 cm), this rule once
-    (a tie, 3.3 against 0.4 cm). See docs/ALIGNER.md.
-
-    `views_a`, `views_b`: RGB-D views or their `SeenDepth` (the third look's, whose
-    nearest-reading images are then made once). `memo` (a dict, or None): ICPs, judgements
-    and refinements by the transform they started from, for a second call on the same
-    clouds and views (the second look at a pair meets the first look's hypotheses again)."""
+    (a tie, 3.3 against 0.4 cm). See docs/ALIGNER.md. `views_a`, `views_b`: RGB-D views or
+    their `SeenDepth` (the third look's, whose nearest-reading images are then made once).
+    `memo` (a dict, or None): ICPs, judgements and refinements by the transform they started
+    from, for a second call on the same clouds and views (the second look's)."""
     v0, v1 = p.coarse_voxel_m, p.voxel_m
     views_a, views_b = _seen(views_a), _seen(views_b)
     ca0, cb0 = clouds[0].at(v0), clouds[1].at(v0, normals=False)  # B's: ICP's source
@@ -165,7 +180,7 @@ def choose(hyps, R: Correspondences, views_a, views_b, clouds, p: AlignParams, m
         _judged(memo, "fine", h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
     top.sort(key=lambda h: -h.score)
     best = top[0]
-    if refused_whatever_refined(best, p):
+    if refused_whatever_refined(best, p, noisy):
         return best, top[1:]
     refined = _memo(memo, "refine", best.T_a_b, lambda T: _refinements(T, clouds, p))
     refined = [(T, best.source + how) for T, how in refined]
@@ -187,16 +202,20 @@ def _seen(views) -> list[SeenDepth]:
     return [v if isinstance(v, SeenDepth) else SeenDepth(v) for v in views]
 
 
-def refused_whatever_refined(best: Hypothesis, p: AlignParams) -> bool:
+def refused_whatever_refined(best: Hypothesis, p: AlignParams, noisy=None) -> bool:
     """Whether the geometry gate refuses `best` however it is refined: its free-space
     consistency under `min_consistency` and its firm consistency under
-    `decisive_consistency` (so the maps' geometry cannot decide on its own). A refinement
+    `decisive_consistency` (so the maps' geometry cannot decide on its own), and, given
+    `noisy` (T -> why T's free space fails at the robots' depth noise, or "":
+    `pipeline.at_noise`), failing there too (judged unrefined, as the counts). A refinement
     keeps the hypothesis's free-space counts (`choose`: rivals were judged unrefined), so
     neither can change, and `pipeline._geometry_gate` refuses on the overlap or the
     consistency. Refining such a winner was 60-70 % of `choose` on refused pairs (two
     HoloLens robots against one from another building: coloured ICP sliding 0.4-1.7 m on
     clouds of 70-110k points, 6-8 s of 9-12 s) for nothing."""
-    return best.consistency < p.min_consistency and best.firm_consistency < p.decisive_consistency
+    if best.consistency >= p.min_consistency or best.firm_consistency >= p.decisive_consistency:
+        return False
+    return noisy is None or bool(noisy(best.T_a_b))
 
 
 def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p: AlignParams):

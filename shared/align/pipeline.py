@@ -26,12 +26,15 @@ import numpy as np
 
 from fleetmap.align.geometric_look import (
     falls_back,
+    firm_ways,
     geometric_look,
     grey_correlation,
+    look_voxel,
     unfirm,
 )
 from fleetmap.align.hypotheses import (
     choose,
+    consistency_at_noise,
     pair_hypotheses,
     probe_points,
     raw_hypotheses,
@@ -173,8 +176,9 @@ def _align(
     if not hyps:
         return AlignResult(False, "no rigid consensus among the correspondences")
     (views_a, views_b), clouds = pair.views, pair.clouds()
+    noisy = lambda T: at_noise(T, pair, depth, p)  # noqa: E731
     if p.use_icp:
-        best, rivals = choose(hyps, R, views_a, views_b, clouds, p, pair.memo)
+        best, rivals = choose(hyps, R, views_a, views_b, clouds, p, pair.memo, noisy)
         probe = probe_points(clouds[1].at(p.coarse_voxel_m, normals=False))
         method = "rigid+icp+colour" if best.source.endswith("+colour") else "rigid+icp"
     else:
@@ -193,7 +197,7 @@ def _align(
     decisive = p.use_icp and _decisive(best, clouds, p)
     need = p.min_inliers // 2 if decisive else p.min_inliers
     out.reason = (
-        _geometry_gate(best, rivals, p, probe, decisive) if p.use_icp else ""
+        _geometry_gate(best, rivals, p, probe, decisive, noisy) if p.use_icp else ""
     ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
     if not out.reason and probe is not None and (pinned or carried(decisive, out.T_a_b, R, p)):
         out.reason = unpinned(out.T_a_b, R, probe, p)
@@ -234,17 +238,21 @@ def _decisive(best, clouds, p: AlignParams) -> bool:
     return p.decisive(best.firm_consistency, min(best.fitness, back))
 
 
-def _geometry_gate(best, rivals, p: AlignParams, probe: np.ndarray, decisive: bool) -> str:
+def _geometry_gate(best, rivals, p: AlignParams, probe, decisive: bool, noisy) -> str:
     """Why the maps' geometry refuses the best hypothesis, or "" if it does not. A rival is
     far when it moves B's points (`probe`) `rival_m` (RMS) or turns `rival_deg` away.
-    Geometry that decides on its own (`decisive`) stands in for the consistency."""
+    Geometry that decides on its own (`decisive`) stands in for the consistency; under the
+    bar, the consistency at the robots' depth noise decides: `noisy(T)` says why it fails
+    there, or "" (`at_noise` on the pair)."""
     if best.fitness < p.min_overlap:
         return f"the maps overlap on {best.fitness:.2f} of B's cloud (need {p.min_overlap})"
     if best.consistency < p.min_consistency and not decisive:
-        return (
-            f"free-space consistency {best.consistency:.2f} (need {p.min_consistency}): "
-            "the aligned maps put surfaces where the cameras saw empty space"
-        )
+        why = noisy(best.T_a_b)
+        if why:
+            return (
+                f"free-space consistency {best.consistency:.2f} (need {p.min_consistency}; "
+                f"{why}): the aligned maps put surfaces where the cameras saw empty space"
+            )
     for h in rivals:
         dt, dr = (
             displacement_rms(h.T_a_b, best.T_a_b, probe),
@@ -255,6 +263,25 @@ def _geometry_gate(best, rivals, p: AlignParams, probe: np.ndarray, decisive: bo
                 f"ambiguous: a rival alignment {dt:.2f} m / {dr:.0f} deg away scores "
                 f"{h.score:.0f} against {best.score:.0f} (self-similar place?)"
             )
+    return ""
+
+
+def at_noise(T: np.ndarray, pair, depth: float, p: AlignParams) -> str:
+    """Why T's free space fails at the robots' measured depth noise too, or "": judged with
+    every margin no tighter than that noise (the third look's floor, `noise_floor`), its
+    consistency as the first look counts it (`consistency_at_noise`) or its firm
+    consistency as the third look counts it (`firm_ways` at its voxel) under
+    `min_consistency`. A fixed margin (1.5 voxels, 2% of the depth) is tighter than a
+    D435's noise from 3 m (3.3 cm RMS a reading): two TUM desk pairs at 1.5 times their
+    size, fitted 4.5-5.8 cm off at the recording's size, scored 0.68-0.69 at it, 0.79 at the
+    noise, firm 0.97 (the truth 0.79, firm 0.99; docs/ALIGNER.md, session 40)."""
+    floor = pair.noise_floor(p.geometric.noise_k)
+    if not floor:
+        return "no depth noise to judge at"
+    c = consistency_at_noise(T, pair.clouds(), *pair.seen(), p, floor)
+    firm = min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth), floor))
+    if min(c, firm) < p.min_consistency:
+        return f"{c:.2f}, firm {firm:.2f} at the robots' depth noise"
     return ""
 
 

@@ -96,27 +96,29 @@ def test_a_winner_left_unrefined_is_one_the_gate_refuses_whatever_its_fit():
     the geometry gate refuses it on its free-space counts (which a refinement keeps),
     whatever overlap and rival the refined fit would show; the rule and the gate must not
     drift apart. Over a grid of counts and overlaps: every skipped winner is refused, and
-    winners the gate could pass are never skipped."""
+    winners the gate could pass are never skipped; with the judging at the robots' depth
+    noise (`pipeline.at_noise`, here a stand-in that fails or holds every fit) as without."""
     from fleetmap.align.hypotheses import refused_whatever_refined
     from fleetmap.align.pipeline import _geometry_gate
     from fleetmap.align.types import Hypothesis
 
     p, probe = AlignParams(), np.random.default_rng(0).normal(size=(50, 3))
-    skipped = passable = 0
-    for supports in (0, 10, 60, 90, 100, 400):
-        for conflicts in (0, 5, 30, 100, 300):
-            for firm in sorted({0, conflicts // 10, conflicts // 2, conflicts}):
-                for fitness in (0.05, 0.15, 0.3, 0.8):
-                    h = Hypothesis(np.eye(4), 20, fitness=fitness, supports=supports)
-                    h.conflicts, h.firm_conflicts = conflicts, firm
-                    decisive = p.decisive(h.firm_consistency, fitness)  # at its best
-                    reason = _geometry_gate(h, [], p, probe, decisive)
-                    if refused_whatever_refined(h, p):
-                        skipped += 1
-                        assert reason, (supports, conflicts, firm, fitness)
-                    elif not reason:
-                        passable += 1
-    assert skipped > 20 and passable > 20  # both sides of the rule were met
+    for noisy in (lambda T: "fails at the noise", lambda T: ""):
+        skipped = passable = 0
+        for supports in (0, 10, 60, 90, 100, 400):
+            for conflicts in (0, 5, 30, 100, 300):
+                for firm in sorted({0, conflicts // 10, conflicts // 2, conflicts}):
+                    for fitness in (0.05, 0.15, 0.3, 0.8):
+                        h = Hypothesis(np.eye(4), 20, fitness=fitness, supports=supports)
+                        h.conflicts, h.firm_conflicts = conflicts, firm
+                        decisive = p.decisive(h.firm_consistency, fitness)  # at its best
+                        reason = _geometry_gate(h, [], p, probe, decisive, noisy)
+                        if refused_whatever_refined(h, p, noisy):
+                            skipped += 1
+                            assert reason, (supports, conflicts, firm, fitness)
+                        elif not reason:
+                            passable += 1
+        assert passable > 20 and (skipped > 20 if noisy(None) else skipped == 0)
 
 
 def test_third_look_tells_the_truth_from_a_slide_on_real_views(tum_two_robots):
