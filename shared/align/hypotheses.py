@@ -117,9 +117,9 @@ def consistency_at_noise(T: np.ndarray, clouds, views_a, views_b, p: AlignParams
     voxels and 2% of the depth), with tol no tighter than `floor(depth)`: the spread
     between the two robots' readings at that depth (`_PairClouds.noise_floor`, the third
     look's). Under the fixed margin a D435 seen from 3 m (3.3 cm RMS a reading) puts right
-    surfaces in each other's seen-empty space: two TUM desk pairs at 1.5 times their size,
-    4.7 and 5.8 cm from the truth, scored 0.69 and 0.68 (need 0.7), 0.79 at the noise
-    (docs/ALIGNER.md, session 40)."""
+    surfaces in each other's seen-empty space: two TUM desk pairs at 1.5 times their size
+    scored 0.69 and 0.68 (need 0.7), 0.79 at the noise; merged, 2.8 and 2.4 cm from the
+    truth (docs/ALIGNER.md, session 40)."""
     v1 = p.voxel_m
     pb, pa = np.asarray(clouds[1].at(v1, normals=False).points), np.asarray(clouds[0].at(v1).points)
     s1, c1, _ = free_space_check(apply(T, pb), _seen(views_a), 1.5 * v1, floor=floor)

@@ -273,8 +273,9 @@ def at_noise(T: np.ndarray, pair, depth: float, p: AlignParams) -> str:
     consistency as the third look counts it (`firm_ways` at its voxel) under
     `min_consistency`. A fixed margin (1.5 voxels, 2% of the depth) is tighter than a
     D435's noise from 3 m (3.3 cm RMS a reading): two TUM desk pairs at 1.5 times their
-    size, fitted 4.5-5.8 cm off at the recording's size, scored 0.68-0.69 at it, 0.79 at the
-    noise, firm 0.97 (the truth 0.79, firm 0.99; docs/ALIGNER.md, session 40)."""
+    size scored 0.68-0.69 at it, 0.79 at the noise, firm 0.97 (the truth 0.79, firm 0.99);
+    refined, they merge 2.8 and 2.4 cm off at the recording's size (docs/ALIGNER.md,
+    session 40)."""
     floor = pair.noise_floor(p.geometric.noise_k)
     if not floor:
         return "no depth noise to judge at"
