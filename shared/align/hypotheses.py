@@ -166,7 +166,7 @@ def choose(
     log.debug("%d distinct hypotheses", len(hyps))
     memo = {} if memo is None else memo
     for h in hyps:
-        h.T_a_b = _memo(memo, "icp", h.T_a_b, lambda T: icp(cb0, ca0, T, (4 * v0, 1.5 * v0), 15)[0])
+        h.T_a_b = once(memo, "icp", h.T_a_b, lambda T: icp(cb0, ca0, T, (4 * v0, 1.5 * v0), 15)[0])
     hyps = _distinct(hyps, probe, v0)
     for h in hyps:
         h.support = _visual_cost(h.T_a_b, R, 1.5 * p.ransac_tol_m)[1]
@@ -182,7 +182,7 @@ def choose(
     best = top[0]
     if refused_whatever_refined(best, p, noisy):
         return best, top[1:]
-    refined = _memo(memo, "refine", best.T_a_b, lambda T: _refinements(T, clouds, p))
+    refined = once(memo, "refine", best.T_a_b, lambda T: _refinements(T, clouds, p))
     refined = [(T, best.source + how) for T, how in refined]
     for T, source in ranked(refined, R, cb1, ca1, p):
         dt, dr = displacement_rms(T, best.T_a_b, probe), transform_error(T, best.T_a_b)[1]
@@ -232,8 +232,8 @@ def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p:
     return [cands[k] for k in tied + rest]
 
 
-def _memo(memo: dict, kind: str, T: np.ndarray, make):
-    """memo[(kind, T)], made by make(T) the first time."""
+def once(memo: dict, kind: str, T: np.ndarray, make):
+    """memo[(kind, T)], made by make(T) the first time: make runs once per transform."""
     key = (kind, np.asarray(T, np.float64).tobytes())
     if key not in memo:
         memo[key] = make(T)
@@ -247,7 +247,7 @@ def _judged(memo: dict, kind: str, h: Hypothesis, *args) -> None:
         _judge(h, *args)
         return h.supports, h.conflicts, h.firm_conflicts, h.fitness
 
-    h.supports, h.conflicts, h.firm_conflicts, h.fitness = _memo(memo, kind, h.T_a_b, judge)
+    h.supports, h.conflicts, h.firm_conflicts, h.fitness = once(memo, kind, h.T_a_b, judge)
 
 
 def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarray, str]]:

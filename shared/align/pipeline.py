@@ -35,6 +35,7 @@ from fleetmap.align.geometric_look import (
 from fleetmap.align.hypotheses import (
     choose,
     consistency_at_noise,
+    once,
     pair_hypotheses,
     probe_points,
     raw_hypotheses,
@@ -275,7 +276,12 @@ def at_noise(T: np.ndarray, pair, depth: float, p: AlignParams) -> str:
     D435's noise from 3 m (3.3 cm RMS a reading): two TUM desk pairs at 1.5 times their
     size scored 0.68-0.69 at it, 0.79 at the noise, firm 0.97 (the truth 0.79, firm 0.99);
     refined, they merge 2.8 and 2.4 cm off at the recording's size (docs/ALIGNER.md,
-    session 40)."""
+    session 40). Once per transform (`once` in the pair's memo): `choose` asks it of
+    the unrefined winner, the gate of the merge, often the same."""
+    return once(pair.memo, "at noise", T, lambda T: _why_at_noise(T, pair, depth, p))
+
+
+def _why_at_noise(T: np.ndarray, pair, depth: float, p: AlignParams) -> str:
     floor = pair.noise_floor(p.geometric.noise_k)
     if not floor:
         return "no depth noise to judge at"

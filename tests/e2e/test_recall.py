@@ -287,12 +287,12 @@ def test_a_desk_seen_from_1_5_times_as_far_through_a_d435_is_merged(tum_rpy, tmp
         dirs[r] = cut_recording(src, frames, tmp_path / r, M[r], 1.5, D435_SIGMA_1M)
     out = tmp_path / "out"
     assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
-    (fit,) = json.loads((out / "report.json").read_text())["fits"]
+    report = json.loads((out / "report.json").read_text())
+    (fit,) = report["fits"]
     assert fit["merged"], fit["reason"]
     T_true = M["A"] @ np.linalg.inv(M["B"])
     T_true[:3, 3] *= 1.5
-    T = np.array(json.loads((out / "report.json").read_text())["transforms"]["B"])
-    dt, dr = error_at_cameras(T, T_true, dirs["B"])
+    dt, dr = error_at_cameras(np.array(report["transforms"]["B"]), T_true, dirs["B"])
     assert dt < 1.5 * 0.05 and dr < 2.0, (dt, dr)
 
 
@@ -338,9 +338,9 @@ def test_a_room_seen_through_more_noise_than_the_third_look_can_judge_is_not_mer
     }  # fmt: skip
     dirs = {}
     for r, src, frames in (("A", "hl_a", slice(0, 60)), ("B", "hl_b", slice(120, 180))):
-        M_r = np.array(M[r])
-        cut_recording(hololens / src, frames, tmp_path / r, M_r, 2.0, D435_SIGMA_1M)
-        dirs[r] = tmp_path / r
+        dirs[r] = cut_recording(
+            hololens / src, frames, tmp_path / r, np.array(M[r]), 2.0, D435_SIGMA_1M
+        )
     out = tmp_path / "out"
     assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
