@@ -24,17 +24,17 @@ def error_at_cameras(T, T_true, robot_dir) -> tuple[float, float]:
     return float(err), rotation_angle_deg(np.linalg.inv(T_true)[:3, :3] @ T[:3, :3])
 
 
-def merge_windows(tmp_path, a, b, seed: int, T_true_src: np.ndarray, seen_as=None):
+def merge_windows(tmp_path, a, b, seed: int, T_true_src: np.ndarray, seen_as=None, other=True):
     """Windows `a`, `b` ((recording folder, slice)) cut as robots A and B in random map
     frames (`seed`, `seed` + 1), merged; (its one fit, the error of B's transform at B's
     cameras (`error_at_cameras`) against the truth; T_true_src maps b's source frame into
     a's). `seen_as`: (scale, depth noise) for `cut_recording`, B then seen by another
-    camera (`simulate.other_camera`); the error at the recording's size."""
+    camera (`simulate.other_camera`) unless not `other`; the error at the recording's size."""
     M = {r: random_frame(s) for s, r in enumerate("AB", start=seed)}
     scale, noise = seen_as or (1.0, 0.0)
     for r, (src, frames) in zip("AB", (a, b), strict=True):
         cut_recording(src, frames, tmp_path / r, M[r], scale, noise)
-    if seen_as:
+    if seen_as and other:
         other_camera(tmp_path / "B")
     out = tmp_path / "out"
     assert (
@@ -69,6 +69,13 @@ def hololens_windows(tmp_path, hololens, a: tuple, b: tuple, seed: int, seen_as=
 def sun3d_windows(tmp_path, sun3d, a: tuple, b: tuple, seed: int):
     """`pair_windows` of SUN3D robot_a frames a[0]:a[1] and robot_b frames b[0]:b[1]."""
     return pair_windows(tmp_path, sun3d, ("robot_a", "robot_b"), a, b, seed)
+
+
+def desk_windows(tmp_path, tum_rpy, seed: int, seen_as: tuple):
+    """`merge_windows` of TUM fr1_rpy frames 0:50 and 130:180 (27% of the desk shared), both
+    seen by the recording's camera at `seen_as` (scale, depth noise)."""
+    a, b = (tum_rpy, slice(0, 50)), (tum_rpy, slice(130, 180))
+    return merge_windows(tmp_path, a, b, seed, np.eye(4), seen_as, other=False)
 
 
 def right_or_refused(fit: dict, err) -> None:
@@ -254,19 +261,9 @@ def test_a_desk_seen_from_0_4_m_is_merged_as_from_1_m(tum_rpy, tmp_path):
     reach) slid the best hypothesis off the desk: in these map frames refused ("free-space
     consistency 0.41"); over six pairs of frames 2 refused and 4 merged at 1.6-2.4 deg,
     against 6 merged at 0.3-0.7 cm / 0.4-1.5 deg now."""
-    M = {r: random_frame(s) for s, r in enumerate("AB", start=5)}
-    dirs = {}
-    for r, frames in (("A", slice(0, 50)), ("B", slice(130, 180))):
-        dirs[r] = cut_recording(tum_rpy, frames, tmp_path / r, M[r], scale=0.4)
-    out = tmp_path / "out"
-    assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
-    report = json.loads((out / "report.json").read_text())
-    (fit,) = report["fits"]
+    fit, err = desk_windows(tmp_path, tum_rpy, 5, (0.4, 0.0))
     assert fit["merged"], fit["reason"]
-    T_true = M["A"] @ np.linalg.inv(M["B"])
-    T_true[:3, 3] *= 0.4
-    dt, dr = error_at_cameras(np.array(report["transforms"]["B"]), T_true, dirs["B"])
-    assert dt < 0.4 * 0.05 and dr < 2.0, (dt, dr)
+    assert err[0] < 0.05 and err[1] < 2.0, err  # at the recording's size
 
 
 def test_a_desk_seen_from_1_5_times_as_far_through_a_d435_is_merged(tum_rpy, tmp_path, monkeypatch):
@@ -280,20 +277,9 @@ def test_a_desk_seen_from_1_5_times_as_far_through_a_d435_is_merged(tum_rpy, tmp
     reach, are off. Within 5 cm / 2 deg of the truth."""
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "false")
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__GEOMETRIC_LOOK", "false")
-    tum = (tum_rpy, slice(0, 50)), (tum_rpy, slice(130, 180))
-    M = {r: random_frame(s) for s, r in enumerate("AB", start=21)}
-    dirs = {}
-    for r, (src, frames) in zip("AB", tum, strict=True):
-        dirs[r] = cut_recording(src, frames, tmp_path / r, M[r], 1.5, D435_SIGMA_1M)
-    out = tmp_path / "out"
-    assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
-    report = json.loads((out / "report.json").read_text())
-    (fit,) = report["fits"]
+    fit, err = desk_windows(tmp_path, tum_rpy, 21, (1.5, D435_SIGMA_1M))
     assert fit["merged"], fit["reason"]
-    T_true = M["A"] @ np.linalg.inv(M["B"])
-    T_true[:3, 3] *= 1.5
-    dt, dr = error_at_cameras(np.array(report["transforms"]["B"]), T_true, dirs["B"])
-    assert dt < 1.5 * 0.05 and dr < 2.0, (dt, dr)
+    assert err[0] < 0.05 and err[1] < 2.0, err  # at the recording's size
 
 
 def test_two_places_at_desk_scale_stay_unmerged(hololens, tum_rpy, tmp_path, monkeypatch):
