@@ -123,13 +123,16 @@ def basins(
     ca, cb = clouds[0].at(voxel), clouds[1].at(voxel)
     param = o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
     fa, fb = REG.compute_fpfh_feature(ca, param), REG.compute_fpfh_feature(cb, param)
+    # the feature matches once each way (plain, mutual), not once a seed: Open3D's
+    # feature RANSAC makes the same ones on every call (`correspondences_from_features`)
+    matched = {m: REG.correspondences_from_features(fb, fa, m) for m in (False, True)}
     probe = probe_points(cb)
     found: list[list] = []
     for seed in range(look.seeds):
         with SEEDED:
             o3d.utility.random.seed(seed)
-            r = REG.registration_ransac_based_on_feature_matching(
-                cb, ca, fb, fa, seed % 2 == 1, 1.5 * voxel,
+            r = REG.registration_ransac_based_on_correspondence(
+                cb, ca, matched[seed % 2 == 1], 1.5 * voxel,
                 REG.TransformationEstimationPointToPoint(False), 3,
                 [REG.CorrespondenceCheckerBasedOnEdgeLength(0.9),
                  REG.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
