@@ -222,8 +222,7 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
     T_back = refine(T_near, clouds, voxel)
     if displacement_rms(T_back, T, probe) < p.voxel_m:
         return True
-    floor = pair.noise_floor(p.geometric.noise_k)
-    return min(firm_ways(T_back, clouds, pair.seen(), voxel, floor)) < p.geometric.min_consistency
+    return firm_at_floor(T_back, pair, p, depth) < p.geometric.min_consistency
 
 
 def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
@@ -232,6 +231,13 @@ def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
     floor, the margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session
     38)."""
     return min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth)))
+
+
+def firm_at_floor(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
+    """`firm_at_noise` with the look's own margin: no tighter than its noise floor
+    (`_PairClouds.noise_floor`), as `judge` counts it."""
+    floor = pair.noise_floor(p.geometric.noise_k)
+    return min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth), floor))
 
 
 def blurred(blur: float, voxel: float, depth: float) -> str:

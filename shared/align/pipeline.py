@@ -26,10 +26,9 @@ import numpy as np
 
 from fleetmap.align.geometric_look import (
     falls_back,
-    firm_ways,
+    firm_at_floor,
     geometric_look,
     grey_correlation,
-    look_voxel,
     unfirm,
 )
 from fleetmap.align.hypotheses import (
@@ -271,7 +270,7 @@ def at_noise(T: np.ndarray, pair, depth: float, p: AlignParams) -> str:
     """Why T's free space fails at the robots' measured depth noise too, or "": judged with
     every margin no tighter than that noise (the third look's floor, `noise_floor`), its
     consistency as the first look counts it (`consistency_at_noise`) or its firm
-    consistency as the third look counts it (`firm_ways` at its voxel) under
+    consistency as the third look counts it (`firm_at_floor`) under
     `min_consistency`. A fixed margin (1.5 voxels, 2% of the depth) is tighter than a
     D435's noise from 3 m (3.3 cm RMS a reading): two TUM desk pairs at 1.5 times their
     size scored 0.68-0.69 at it, 0.79 at the noise, firm 0.97 (the truth 0.79, firm 0.99);
@@ -286,7 +285,7 @@ def _why_at_noise(T: np.ndarray, pair, depth: float, p: AlignParams) -> str:
     if not floor:
         return "no depth noise to judge at"
     c = consistency_at_noise(T, pair.clouds(), *pair.seen(), p, floor)
-    firm = min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth), floor))
+    firm = firm_at_floor(T, pair, p, depth)
     if min(c, firm) < p.min_consistency:
         return f"{c:.2f}, firm {firm:.2f} at the robots' depth noise"
     return ""
