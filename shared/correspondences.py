@@ -143,13 +143,20 @@ def verified_and_raw(
 
     Across wide baselines (robots 60-90 degrees apart) the epipolar RANSAC keeps too few
     right matches; a rigid RANSAC in 3D on the raw matches, judged by geometry, does
-    better (see `fleetmap.align`)."""
-    verified, raw = [], []
-    for i, (a, b) in enumerate(pairs):
-        fa, fb = feats[id(a)], feats[id(b)]
-        m_verify, m_raw = match_descriptors_at(
+    better (see `fleetmap.align`).
+
+    Two threads, one pair each: numpy's product and OpenCV's USAC (seeded per call, so
+    a pair's inliers do not depend on the thread) release the GIL. SUN3D's 120 view pairs
+    0.50 -> 0.28 s, the same correspondences to the bit (docs/BENCHMARKS.md, session 42)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(i: int) -> tuple[Correspondences, Correspondences]:
+        (a, b), fa, fb = pairs[i], feats[id(pairs[i][0])], feats[id(pairs[i][1])]
+        verify, raw = match_descriptors_at(
             fa.descriptors, fb.descriptors, (ALIGN_MATCH.ratio, ratio)
         )
-        verified.append(pair_correspondences(a, b, i, fa, fb, matches=m_verify))
-        raw.append(lift(a, b, fa, fb, *m_raw, i))
-    return Correspondences.concat(verified), Correspondences.concat(raw)
+        return pair_correspondences(a, b, i, fa, fb, matches=verify), lift(a, b, fa, fb, *raw, i)
+
+    with ThreadPoolExecutor(2) as ex:
+        verified, raw = zip(*ex.map(one, range(len(pairs))), strict=True) if pairs else ((), ())
+    return Correspondences.concat(list(verified)), Correspondences.concat(list(raw))

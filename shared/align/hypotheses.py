@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -171,13 +172,12 @@ def choose(
     for h in hyps:
         h.support = _visual_cost(h.T_a_b, R, 1.5 * p.ransac_tol_m)[1]
     backed = [h for h in hyps if h.support >= p.min_inliers] or hyps
-    for h in backed:  # the others are not looked at again: not judged either
-        _judged(memo, "coarse", h, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
+    # the others are not looked at again: not judged either
+    _judged(memo, "coarse", backed, cb0, ca0, views_a, views_b, 1.25 * v0, 1.25 * v0)
     backed.sort(key=lambda h: -h.score)
     top = backed[: p.refine]
     ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1, normals=False)
-    for h in top:
-        _judged(memo, "fine", h, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
+    _judged(memo, "fine", top, cb1, ca1, views_a, views_b, 1.5 * v1, 2 * v1)
     top.sort(key=lambda h: -h.score)
     best = top[0]
     if refused_whatever_refined(best, p, noisy):
@@ -240,14 +240,21 @@ def once(memo: dict, kind: str, T: np.ndarray, make):
     return memo[key]
 
 
-def _judged(memo: dict, kind: str, h: Hypothesis, *args) -> None:
-    """`_judge` of h, or its counts and fitness from `memo` for the same transform."""
+def _judged(memo: dict, kind: str, hyps: list[Hypothesis], *args) -> None:
+    """`_judge` of each hypothesis, or its counts and fitness from `memo` for the same
+    transform. Two threads, one hypothesis each (distinct transforms: `memo`'s keys never
+    collide): numpy's work on the projected points releases the GIL (SUN3D's ten
+    judgements 0.93 -> 0.63 s, the same counts; docs/BENCHMARKS.md, session 42)."""
 
-    def judge(T):
-        _judge(h, *args)
-        return h.supports, h.conflicts, h.firm_conflicts, h.fitness
+    def judged(h: Hypothesis) -> None:
+        def judge(T):
+            _judge(h, *args)
+            return h.supports, h.conflicts, h.firm_conflicts, h.fitness
 
-    h.supports, h.conflicts, h.firm_conflicts, h.fitness = once(memo, kind, h.T_a_b, judge)
+        h.supports, h.conflicts, h.firm_conflicts, h.fitness = once(memo, kind, h.T_a_b, judge)
+
+    with ThreadPoolExecutor(2) as ex:
+        list(ex.map(judged, hyps))
 
 
 def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarray, str]]:
