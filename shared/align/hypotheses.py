@@ -243,8 +243,10 @@ def once(memo: dict, kind: str, T: np.ndarray, make):
 def _judged(memo: dict, kind: str, hyps: list[Hypothesis], *args) -> None:
     """`_judge` of each hypothesis, or its counts and fitness from `memo` for the same
     transform. Two threads, one hypothesis each (distinct transforms: `memo`'s keys never
-    collide): numpy's work on the projected points releases the GIL (SUN3D's ten
-    judgements 0.93 -> 0.63 s, the same counts; docs/BENCHMARKS.md, session 42)."""
+    collide; a view's nearest-reading image may be made twice, the same both times):
+    numpy's work on the projected points releases the GIL (SUN3D's ten judgements 0.93 ->
+    0.63 s, the same counts; no gain on a desk's smaller clouds; docs/BENCHMARKS.md,
+    session 42)."""
 
     def judged(h: Hypothesis) -> None:
         def judge(T):
