@@ -145,18 +145,21 @@ def verified_and_raw(
     right matches; a rigid RANSAC in 3D on the raw matches, judged by geometry, does
     better (see `fleetmap.align`).
 
-    Two threads, one pair each: numpy's product and OpenCV's USAC (seeded per call, so
-    a pair's inliers do not depend on the thread) release the GIL. SUN3D's 120 view pairs
-    0.50 -> 0.28 s, the same correspondences to the bit (docs/BENCHMARKS.md, session 42)."""
+    Two threads, one pair each: numpy's product and OpenCV's USAC release the GIL, and a
+    pair's inliers do not depend on the thread (the same correspondences to the bit over
+    four replays). SUN3D's 120 view pairs 0.50 -> 0.28 s (docs/BENCHMARKS.md, session 42)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    def one(i: int) -> tuple[Correspondences, Correspondences]:
-        (a, b), fa, fb = pairs[i], feats[id(pairs[i][0])], feats[id(pairs[i][1])]
+    def one(k: int) -> tuple[Correspondences, Correspondences]:
+        a, b = pairs[k]
+        fa, fb = feats[id(a)], feats[id(b)]
         verify, raw = match_descriptors_at(
             fa.descriptors, fb.descriptors, (ALIGN_MATCH.ratio, ratio)
         )
-        return pair_correspondences(a, b, i, fa, fb, matches=verify), lift(a, b, fa, fb, *raw, i)
+        return pair_correspondences(a, b, k, fa, fb, matches=verify), lift(a, b, fa, fb, *raw, k)
 
     with ThreadPoolExecutor(2) as ex:
-        verified, raw = zip(*ex.map(one, range(len(pairs))), strict=True) if pairs else ((), ())
-    return Correspondences.concat(list(verified)), Correspondences.concat(list(raw))
+        found = list(ex.map(one, range(len(pairs))))
+    return Correspondences.concat([v for v, _ in found]), Correspondences.concat(
+        [r for _, r in found]
+    )
