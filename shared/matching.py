@@ -91,7 +91,7 @@ def match_descriptors_at(
         return [(np.zeros(0, int), np.zeros(0, int)) for _ in ratios]
     fa, fb = da.astype(np.float32), db.astype(np.float32)
     na, nb = (fa * fa).sum(1), (fb * fb).sum(1)
-    product = _products(da, db)
+    product = _products(da, db, fa, fb)
     best = np.empty(len(fa), np.intp)
     s1, s2 = np.empty(len(fa), np.float32), np.empty(len(fa), np.float32)
     mutual = np.zeros(len(fa), bool)
@@ -122,36 +122,33 @@ def match_descriptors_at(
 _BLOCK = 256
 
 
-#: Products of at least this many entries are made in 8-bit integers where torch is
-#: installed (the aligner's `server` extra): the second look's 6,000 x 7,000 ASIFT
-#: matchings; the place database's few hundred features a keyframe stay in numpy.
-INT8_MIN_ENTRIES = 4_000_000
+#: Products of at least this many entries are made by torch where it is installed (the
+#: aligner's `server` extra): the second look's 6,000 x 7,000 ASIFT matchings; the place
+#: database's few hundred features a keyframe stay in numpy.
+TORCH_MIN_ENTRIES = 4_000_000
 
 
-def _products(da: np.ndarray, db: np.ndarray):
-    """rows -> the block da[rows] . db^T as float32, from torch's 8-bit integer product
-    (`torch._int_mm`: VNNI where the CPU has it), or None where numpy's is used. Exact:
-    uint8 descriptors shifted to int8, a' = a - 128, give a.b = a'.b' + 128 (sum a + sum b)
-    - 128^2 d for descriptors of length d; integers float32 holds exactly, as it holds
-    numpy's product, so the matches are the same to the bit. HoloLens ASIFT views (4,500
-    features each): 34 -> 21 ms a view pair; the second look on a refused pair of different
-    recordings 7.5 -> 5.5 s where torch is loaded already (the aligner service), about 0.5 s
-    in a fresh `fleetmap merge` (importing torch: 0.75-1 s)."""
-    if da.dtype != np.uint8 or db.dtype != np.uint8 or len(da) * len(db) < INT8_MIN_ENTRIES:
+def _products(da: np.ndarray, db: np.ndarray, fa: np.ndarray, fb: np.ndarray):
+    """rows -> the block fa[rows] . fb^T (float32 copies of the uint8 `da`, `db`) from
+    torch's product, or None where numpy's is used. Exact on both: every product and sum of
+    uint8 descriptors of length up to 258 is an integer under 2^24, which float32 holds, so
+    the matches are the same to the bit. torch's, not numpy's, because the second look runs
+    two matchings at once: OpenBLAS's thread count is the process's, and two calls that each
+    want its two threads wait on each other, where torch's is each thread's own
+    (`single_threaded_products`). A HoloLens pair's 36 matchings (6 x 6 ASIFT views, two
+    threads, quiet): 4.0 s with torch's 8-bit `_int_mm` on two threads each, 3.1-3.5 s in
+    float32 on one thread each, numpy's on one BLAS thread 3.2 s, on two 6.4 s (session 43).
+    Importing torch takes 0.75-1 s the first time: the aligner service imports it then."""
+    exact = da.dtype == np.uint8 and db.dtype == np.uint8 and da.shape[1] <= 258
+    if not exact or len(da) * len(db) < TORCH_MIN_ENTRIES:
         return None
     torch = _torch()
     if torch is None:
         return None
-    a8 = torch.from_numpy((da.astype(np.int16) - 128).astype(np.int8))
-    b8 = torch.from_numpy((db.astype(np.int16) - 128).astype(np.int8)).T
-    col = 128.0 * db.sum(1, dtype=np.float32) - 128.0**2 * db.shape[1]
-    row = 128.0 * da.sum(1, dtype=np.float32)
+    a, bt = torch.from_numpy(fa), torch.from_numpy(fb).T
 
     def block(rows: slice) -> np.ndarray:
-        S = torch._int_mm(a8[rows], b8).numpy().astype(np.float32)
-        S += col[None, :]
-        S += row[rows, None]
-        return S
+        return torch.mm(a[rows], bt).numpy()
 
     return block
 
@@ -162,7 +159,31 @@ def _torch():
         import torch
     except ImportError:
         return None
-    return torch if hasattr(torch, "_int_mm") else None
+    return torch
+
+
+def single_threaded_products() -> None:
+    """This thread's torch products on one core (a pool's initializer, where each worker
+    runs whole matchings): two at once then keep two cores busy instead of four threads
+    spinning on them. OpenMP's thread count is per thread (`omp_set_num_threads` of the
+    OpenMP torch loaded); `torch.set_num_threads` is not: it also sets what every thread
+    that first uses torch after it starts with. Nothing where torch is absent or runs
+    another OpenMP."""
+    torch = _torch()
+    if torch is None:
+        return
+    import ctypes
+    import os
+
+    try:  # the copy torch loaded, never another one
+        gomp = ctypes.CDLL(
+            os.path.join(os.path.dirname(torch.__file__), "lib", "libgomp.so.1"),
+            mode=os.RTLD_NOLOAD | os.RTLD_LAZY,
+        )
+    except OSError:
+        return
+    torch.get_num_threads()  # torch's own first-use set-up of this thread, before ours
+    gomp.omp_set_num_threads(1)
 
 
 def _block(S: np.ndarray, na: np.ndarray, nb: np.ndarray, near=None):

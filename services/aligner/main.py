@@ -26,7 +26,7 @@ def create_app(settings: Settings | None = None, announce: bool = True) -> FastA
     async def lifespan(app: FastAPI):
         import open3d  # noqa: F401  heavy import at start-up, not on the first request
 
-        # not torch (1.3-1.5 s of a core): the MLP is numpy; only the second look's 8-bit
+        # not torch (1.3-1.5 s of a core): the MLP is numpy; only the second look's
         # descriptor products use it (`fleetmap.matching._products`), and import it then
 
         app.state.clouds = OrderedDict()

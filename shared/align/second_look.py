@@ -21,7 +21,7 @@ from fleetmap.align.types import SecondLook, unique_views
 from fleetmap.correspondences import Correspondences, lift
 from fleetmap.feature_cache import Recent, cached_local, digest
 from fleetmap.features import SIFT_LAYERS, SIFT_SIGMA, LocalFeatures, affine_features
-from fleetmap.matching import distinct_second, match_descriptors
+from fleetmap.matching import distinct_second, match_descriptors, single_threaded_products
 
 
 def spread_views(views: list, n: int) -> list:
@@ -66,7 +66,8 @@ def affine_matches(pairs, first_index: int, s: SecondLook) -> Correspondences:
         key = (keys[ab[0]], keys[len(va) + ab[1]], s.ratio, s.distinct_px)
         return _MATCHES.get(key, lambda: match_descriptors(a, b, s.ratio, near[ab[1]]))
 
-    with ThreadPoolExecutor(2) as ex:  # numpy's product, sort and partition release the GIL
+    # the products, maxima and sorts release the GIL; each thread's products on one core
+    with ThreadPoolExecutor(2, initializer=single_threaded_products) as ex:
         found = list(ex.map(match, grid))
     out = [
         lift(va[a], vb[b], fa[a], fb[b], ia, ib, first_index + k)

@@ -50,19 +50,19 @@ def test_blocked_matching_is_the_whole_matrix_matching(monkeypatch):
             assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
 
 
-def test_int8_products_give_the_whole_matrix_matching(monkeypatch):
-    """The 8-bit product path (torch installed) on uint8 descriptors over the whole 0-255
+def test_torch_products_give_the_whole_matrix_matching(monkeypatch):
+    """The torch product path (torch installed) on uint8 descriptors over the whole 0-255
     range, with ties and several blocks: the same matches as the definition."""
     if matching._torch() is None:
         pytest.skip("torch is not installed (a robot's install): numpy's product is used")
     monkeypatch.setattr(matching, "_BLOCK", 7)
-    monkeypatch.setattr(matching, "INT8_MIN_ENTRIES", 1)
+    monkeypatch.setattr(matching, "TORCH_MIN_ENTRIES", 1)
     rng = np.random.default_rng(6)
     for _ in range(60):
         n, m = rng.integers(2, 40, size=2)
         levels = rng.choice([0, 1, 2, 127, 128, 254, 255], size=(n + m, 6))
         da, db = levels[:n].astype(np.uint8), levels[n:].astype(np.uint8)
-        assert matching._products(da, db) is not None
+        assert matching._products(da, db, da.astype(np.float32), db.astype(np.float32)) is not None
         found = match_descriptors_at(da, db, (0.8, 1.0))
         for ratio, (ia, ib) in zip((0.8, 1.0), found, strict=True):
             ja, jb = _matches_from_the_whole_matrix(da, db, ratio)
@@ -82,16 +82,16 @@ def _distinct_from_the_whole_matrix(da, db, kb, radius, ratio):
     return ia, best[ia]
 
 
-@pytest.mark.parametrize("int8", [False, True])
-def test_the_second_nearest_is_another_point(monkeypatch, int8):
+@pytest.mark.parametrize("torch_path", [False, True])
+def test_the_second_nearest_is_another_point(monkeypatch, torch_path):
     """`near` (`distinct_second`): the ratio test's second nearest skips b's features
     within r pixels of the nearest's keypoint (one point described under several tilts),
     on both product paths and over several blocks; the same as the definition, and a match
     the plain ratio test refuses for a near-duplicate is kept."""
-    if int8 and matching._torch() is None:
+    if torch_path and matching._torch() is None:
         pytest.skip("torch is not installed (a robot's install): numpy's product is used")
     monkeypatch.setattr(matching, "_BLOCK", 7)
-    monkeypatch.setattr(matching, "INT8_MIN_ENTRIES", 1 if int8 else 10**12)
+    monkeypatch.setattr(matching, "TORCH_MIN_ENTRIES", 1 if torch_path else 10**12)
     rng = np.random.default_rng(7)
     for _ in range(60):
         n, m = rng.integers(2, 40, size=2)
@@ -137,3 +137,31 @@ def test_asift_copies_of_a_point_no_longer_refuse_its_match(hololens):
     (plain, n_plain), (apart, n_apart) = counts[0.0], counts[4.0]
     assert apart >= max(2 * plain, 8), counts
     assert apart / n_apart >= 0.9 * plain / n_plain, counts
+
+
+def test_single_threaded_products_change_only_their_own_thread():
+    """The second look's matching threads take torch's products on one core each; the
+    thread that asked, and every thread started later, keep their count (what
+    `torch.set_num_threads` would not: it sets later threads' count as well)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    torch = matching._torch()
+    if torch is None:
+        pytest.skip("torch is not installed (a robot's install): numpy's product is used")
+    here, before = torch.get_num_threads(), _in_a_new_thread(torch.get_num_threads)
+    _in_a_new_thread(lambda: torch.set_num_threads(2))  # a count one thread differs from
+    try:
+        with ThreadPoolExecutor(1, initializer=matching.single_threaded_products) as ex:
+            inside = ex.submit(torch.get_num_threads).result()
+        assert inside == 1
+        assert _in_a_new_thread(torch.get_num_threads) == 2
+        assert torch.get_num_threads() == here
+    finally:
+        _in_a_new_thread(lambda: torch.set_num_threads(before))
+
+
+def _in_a_new_thread(fn):
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1) as ex:
+        return ex.submit(fn).result()
