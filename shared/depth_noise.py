@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.mapcloud import SeenDepth, off_edge_points
+from fleetmap.mapcloud import MAX_DEPTH_M, SeenDepth, off_edge_points
 
 #: depth bands (metres): half a metre wide where cameras see most, wider beyond
 EDGES = np.array([0.0, 0.75, 1.25, 1.75, 2.25, 2.75, 3.25, 3.75, 4.5, 5.5, 7.0])
@@ -43,7 +43,9 @@ class DepthNoise:
     sigma: np.ndarray  # ndarray of shape (len(EDGES) - 1,)
 
     @classmethod
-    def measure(cls, views: Sequence, stride: int = 8, max_depth: float = 6.0) -> DepthNoise:
+    def measure(
+        cls, views: Sequence, stride: int = 8, max_depth: float = MAX_DEPTH_M
+    ) -> DepthNoise:
         """From one robot's RGB-D views (every `stride`-th pixel, off depth edges: a pixel
         whose neighbourhood spans over 5% of its depth may mix both sides of the edge)."""
         d, r = _differences(views, stride, max_depth)

@@ -22,12 +22,12 @@ import numpy as np
 
 from fleetmap.dataset import ImageReader, Recording
 from fleetmap.frame import Frame
-from fleetmap.mapcloud import view_points
+from fleetmap.mapcloud import MAX_DEPTH_M, view_points
 from fleetmap.view import encode_view
 
 #: Every CLOUD_STRIDE-th pixel of a keyframe's depth goes into the map cloud.
 CLOUD_STRIDE = 4
-CLOUD_MAX_DEPTH_M = 6.0
+CLOUD_MAX_DEPTH_M = MAX_DEPTH_M
 
 _extractor = None  # per worker process
 

@@ -15,6 +15,10 @@ from fleetmap.lazy import LazyModule
 
 o3d = LazyModule("open3d")
 
+#: Depth readings farther than this (metres) stay out of the map clouds (the aligner's may
+#: reach farther in a large scene: `AlignParams.cloud_depth_cap`).
+MAX_DEPTH_M = 6.0
+
 REG = LazyModule("open3d", "pipelines.registration")
 #: Open3D's random generator is one per process: a seed and the RANSAC drawing from it run
 #: under this lock, so two requests' RANSACs at once give what each gives alone
@@ -85,7 +89,7 @@ def view_points(
     intrinsics,
     T_map_cam: np.ndarray,
     stride: int = 4,
-    max_depth: float = 6.0,
+    max_depth: float = MAX_DEPTH_M,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One RGB-D view's share of its robot's map cloud: every `stride`-th pixel with depth
     under `max_depth`, as points of shape (M, 3) float64 in the map frame and their colours
@@ -99,7 +103,7 @@ def views_cloud(
     views: Iterable,
     voxel: float = 0.03,
     stride: int = 4,
-    max_depth: float = 6.0,
+    max_depth: float = MAX_DEPTH_M,
     with_color: bool = True,
 ) -> o3d.geometry.PointCloud:
     """One robot's map cloud from its RGB-D views: back-projected, voxel down-sampled,
@@ -115,7 +119,7 @@ class ViewsCloud:
     made on demand and kept per voxel size: the aligner looks at the same views at three
     or four scales."""
 
-    def __init__(self, views: Iterable, stride: int = 4, max_depth: float = 6.0):
+    def __init__(self, views: Iterable, stride: int = 4, max_depth: float = MAX_DEPTH_M):
         self.views, self.stride, self.max_depth = list(views), stride, max_depth
         parts = [
             view_points(v.rgb, v.depth, v.intrinsics, v.T_map_cam, stride, max_depth)
@@ -148,7 +152,7 @@ class ViewsCloud:
         return self._off_edges[voxel]
 
 
-def off_edge_points(view, stride: int = 4, max_depth: float = 6.0) -> np.ndarray:
+def off_edge_points(view, stride: int = 4, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
     """One view's every `stride`-th pixel off depth edges (`ViewsCloud.off_edges`' rule),
     as points of shape (M, 3) in the map frame."""
     p, uv = depth_to_points(view.depth, view.intrinsics, stride, max_depth)

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fleetmap.geometry import apply
+from fleetmap.mapcloud import MAX_DEPTH_M
 
 if TYPE_CHECKING:
     from fleetmap.estimators import MLPEstimator
@@ -116,10 +117,18 @@ class AlignParams:
     # the nearest scene (median depth of the views, metres) the lengths above were set and
     # measured on: the TUM desk, 0.9-1.1 m; a nearer scene has them shrunk (`at_depth`)
     reference_depth_m: float = 1.0
+    # the views' clouds (ICP, overlap, free space, the depth noise) leave out readings
+    # farther than this; in a larger scene they may reach `max_depth_rel` times its median
+    # depth, as far as the robots' readings agree within the coarse voxel
+    # (`cloud_depth_cap`, `pipeline._reach`)
+    max_depth_m: float = MAX_DEPTH_M
+    max_depth_rel: float = 2.0
 
     def __post_init__(self) -> None:
         if not self.reference_depth_m > 0:
             raise ValueError("reference_depth_m must be a positive depth in metres")
+        if not (self.max_depth_m > 0 and self.max_depth_rel >= 0):
+            raise ValueError("max_depth_m must be a positive depth, max_depth_rel 0 or more")
 
     def at_depth(self, depth_m: float) -> AlignParams:
         """These parameters for views whose median depth is `depth_m`: nearer than
@@ -142,6 +151,19 @@ class AlignParams:
         lengths = ("ransac_tol_m", "min_spread_m", "max_holdout_m", "dedupe_m", "voxel_m")
         lengths += ("coarse_voxel_m", "rival_m")
         return replace(self, **{name: k * getattr(self, name) for name in lengths})
+
+    def cloud_depth_cap(self, depth_m: float) -> float:
+        """How far (metres) the views' clouds may reach for a scene of median depth
+        `depth_m`: `max_depth_m`, or `max_depth_rel` x the median where that is farther
+        (beyond `max_depth_m` only as far as the robots' readings agree within the coarse
+        voxel: `pipeline._reach`). The 6 m cap
+        was set on rooms seen from 1-3 m (a Kinect-class sensor's useful range), where it
+        never cuts inside twice the median depth; a larger room seen by a sensor that
+        reaches it lost half of each view to it: the HoloLens walk at twice its size
+        (median 5.1 m, seed 61), hl_a[15:75] / hl_b[120:180] (31% shared) was refused with
+        "the maps overlap on 0.09 of B's cloud" and merged 3.0 cm from the truth (at the
+        recording's size) with the clouds to 10.2 m (docs/ALIGNER.md, session 43)."""
+        return max(self.max_depth_m, self.max_depth_rel * depth_m)
 
     def spread_needed(self, depth_m: float) -> float:
         """The inliers' spread (metres) the gate needs for views whose median depth is
