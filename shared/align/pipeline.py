@@ -163,7 +163,9 @@ def _reach(views, near: float, far: float, bound: float) -> float:
     HoloLens walk at twice its size (median depth 5.1 m) agrees within 3.2 cm out to 12 m
     and merges only with them; SUN3D's Xtion spreads 13 cm at 6 m, and its study room
     (median 3.3 m) merged 8.7 -> 15.6 cm from the truth with readings to 6.6 m
-    (docs/ALIGNER.md, session 43)."""
+    (docs/ALIGNER.md, session 43). `DepthNoise` measures in bands to 7 m (`EDGES`) and
+    holds its last band's spread (5.5-7 m) beyond: past it the reach is what that band
+    allows, not a measurement."""
     a, b = (DepthNoise.measure(v, max_depth=far) for v in views)
     depths = np.append(np.arange(near, far, 0.25), far)
     over = np.flatnonzero(a.between(b)(depths) > bound)

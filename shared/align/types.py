@@ -156,13 +156,13 @@ class AlignParams:
         """How far (metres) the views' clouds may reach for a scene of median depth
         `depth_m`: `max_depth_m`, or `max_depth_rel` x the median where that is farther
         (beyond `max_depth_m` only as far as the robots' readings agree within the coarse
-        voxel: `pipeline._reach`). The 6 m cap
-        was set on rooms seen from 1-3 m (a Kinect-class sensor's useful range), where it
-        never cuts inside twice the median depth; a larger room seen by a sensor that
-        reaches it lost half of each view to it: the HoloLens walk at twice its size
-        (median 5.1 m, seed 61), hl_a[15:75] / hl_b[120:180] (31% shared) was refused with
-        "the maps overlap on 0.09 of B's cloud" and merged 3.0 cm from the truth (at the
-        recording's size) with the clouds to 10.2 m (docs/ALIGNER.md, session 43)."""
+        voxel: `pipeline._reach`). The 6 m cap was set on rooms seen from 1-3 m (a
+        Kinect-class sensor's useful range), where it never cuts inside twice the median
+        depth; a larger room seen by a sensor that reaches it lost half of each view to it:
+        the HoloLens walk at twice its size (median 5.1 m, seed 61), hl_a[15:75] /
+        hl_b[120:180] (31% shared), was refused with "the maps overlap on 0.09 of B's
+        cloud" and merges 2.1 cm from the truth (at the recording's size) with the clouds
+        to 10.2 m (docs/ALIGNER.md, session 43)."""
         return max(self.max_depth_m, self.max_depth_rel * depth_m)
 
     def spread_needed(self, depth_m: float) -> float:
