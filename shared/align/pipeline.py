@@ -125,10 +125,12 @@ class _PairClouds:
         bound): farther, up to `farthest`, as far as the robots' readings agree within
         `bound` (`_reach`)."""
         self.views = unique_views(pairs, 0), unique_views(pairs, 1)
-        self.max_depth = max_depth
+        self.max_depth, self._noise = max_depth, None
         if reach is not None and reach[0] > max_depth:
-            self.max_depth = _reach(self.views, max_depth, *reach)
-        self._clouds = self._seen = self._noise = None
+            self.max_depth, noise = _reach(self.views, max_depth, *reach)
+            if self.max_depth == reach[0]:  # measured to where the clouds reach: keep it
+                self._noise = noise
+        self._clouds = self._seen = None
         self.memo: dict = {}
 
     def clouds(self) -> tuple[ViewsCloud, ViewsCloud]:
@@ -156,9 +158,10 @@ class _PairClouds:
         return lambda depth: k * noise(depth)
 
 
-def _reach(views, near: float, far: float, bound: float) -> float:
+def _reach(views, near: float, far: float, bound: float) -> tuple[float, DepthNoise]:
     """How far (metres, from `near` to `far`) the clouds reach: up to the first depth where
-    the two robots' own readings disagree by more than `bound` (`DepthNoise.between`). Far
+    the two robots' own readings disagree by more than `bound`; and that disagreement
+    (`DepthNoise.between`, measured to `far`). Far
     readings help where the sensor still measures there and hurt where it does not: the
     HoloLens walk at twice its size (median depth 5.1 m) agrees within 3.2 cm out to 12 m
     and merges only with them; SUN3D's Xtion spreads 13 cm at 6 m, and its study room
@@ -167,9 +170,10 @@ def _reach(views, near: float, far: float, bound: float) -> float:
     holds its last band's spread (5.5-7 m) beyond: past it the reach is what that band
     allows, not a measurement."""
     a, b = (DepthNoise.measure(v, max_depth=far) for v in views)
+    noise = a.between(b)
     depths = np.append(np.arange(near, far, 0.25), far)
-    over = np.flatnonzero(a.between(b)(depths) > bound)
-    return float(depths[over[0]]) if len(over) else far
+    over = np.flatnonzero(noise(depths) > bound)
+    return (float(depths[over[0]]) if len(over) else far), noise
 
 
 def _align(

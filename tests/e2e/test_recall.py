@@ -25,15 +25,15 @@ def error_at_cameras(T, T_true, robot_dir) -> tuple[float, float]:
 
 
 def merge_windows(
-    tmp_path, a, b, seed: int, T_true_src: np.ndarray, seen_as=None, other=True, frames=None
+    tmp_path, a, b, seed: int, T_true_src: np.ndarray, seen_as=None, other=True, map_frames=None
 ):
     """Windows `a`, `b` ((recording folder, slice)) cut as robots A and B in random map
     frames (`seed`, `seed` + 1), merged; (its one fit, the error of B's transform at B's
     cameras (`error_at_cameras`) against the truth; T_true_src maps b's source frame into
     a's). `seen_as`: (scale, depth noise) for `cut_recording`, B then seen by another
     camera (`simulate.other_camera`) unless not `other`; the error at the recording's size.
-    `frames`: {"A": 4x4, "B": 4x4} map frames instead of the seed's."""
-    M = frames or {r: random_frame(s) for s, r in enumerate("AB", start=seed)}
+    `map_frames`: {"A": 4x4, "B": 4x4} instead of the seed's."""
+    M = map_frames or {r: random_frame(s) for s, r in enumerate("AB", start=seed)}
     scale, noise = seen_as or (1.0, 0.0)
     for r, (src, frames) in zip("AB", (a, b), strict=True):
         cut_recording(src, frames, tmp_path / r, M[r], scale, noise)
@@ -245,9 +245,8 @@ def test_a_room_at_twice_its_size_is_merged_on_readings_beyond_6_m(hololens, tmp
     each view: every look refused ("the maps overlap on 0.09 of B's cloud"; the third look's
     best firm 0.72). With the clouds reaching twice the scene's median depth, as far as the
     robots' readings agree within 8 cm (`AlignParams.cloud_depth_cap`), the third look
-    merges. The second look, which refuses
-    this pair before the third merges it, is off here. Within 5 cm / 2 deg of the truth at
-    the recording's size."""
+    merges. The second look, which refuses this pair before the third merges it, is off
+    here. Within 5 cm / 2 deg of the truth at the recording's size."""
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "false")
     M = {  # the draw's random map frames (bench/recall.py --seed 61), kept as it drew them
         "A": [[-0.547516950453, -0.232645464288, 0.803804252858, 1.329145894533],
@@ -262,7 +261,7 @@ def test_a_room_at_twice_its_size_is_merged_on_readings_beyond_6_m(hololens, tmp
     M = {r: np.array(T) for r, T in M.items()}
     A, B = (hololens / "hl_a", slice(15, 75)), (hololens / "hl_b", slice(120, 180))
     T = np.loadtxt(hololens / "T_a_b.txt")
-    fit, err = merge_windows(tmp_path, A, B, 0, T, (2.0, 0.0), frames=M)
+    fit, err = merge_windows(tmp_path, A, B, 0, T, (2.0, 0.0), map_frames=M)
     merged_near_truth(fit, err, "fpfh")
 
 
