@@ -76,6 +76,10 @@ COST_S = {
     "tests/e2e/test_recall.py::"
     "test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_merge": 35,
     APART[2]: 47,
+    # the two rooms at twice their size (their clouds and lengths, session 45's wall times)
+    "tests/e2e/test_recall.py::"
+    "test_a_room_at_twice_its_size_is_judged_at_lengths_in_proportion": 50,
+    "tests/e2e/test_recall.py::test_a_room_at_twice_its_size_is_merged_on_readings_beyond_6_m": 37,
     "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
     "tests/e2e/test_demo_fleet.py": 33,
     "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 32,

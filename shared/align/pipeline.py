@@ -66,7 +66,7 @@ def align_views(
     if not pairs:
         raise BadInput("Give at least one RGB-D pair")
     depth = scene_depth(pairs)
-    p = p.at_depth(depth)  # a nearer scene: every length in proportion
+    p = p.at_depth(depth)  # a nearer or farther scene: every length in proportion
     C, R = verified_and_raw(pairs, pair_features(pairs))
     # both looks see the same views: their clouds made once
     pair = _PairClouds(pairs, p.max_depth_m, (p.cloud_depth_cap(depth), p.coarse_voxel_m))

@@ -117,6 +117,9 @@ class AlignParams:
     # the nearest scene (median depth of the views, metres) the lengths above were set and
     # measured on: the TUM desk, 0.9-1.1 m; a nearer scene has them shrunk (`at_depth`)
     reference_depth_m: float = 1.0
+    # the farthest: SUN3D's study room, whose robot_a sees it from 3.3-3.5 m (the HoloLens
+    # lounge 1.7-2.8 m); a farther scene has them grown in proportion (`at_depth`)
+    far_depth_m: float = 3.5
     # the views' clouds (ICP, overlap, free space, the depth noise) leave out readings
     # farther than this; in a larger scene they may reach `max_depth_rel` times its median
     # depth, as far as the robots' readings agree within the coarse voxel
@@ -125,8 +128,10 @@ class AlignParams:
     max_depth_rel: float = 2.0
 
     def __post_init__(self) -> None:
-        if not self.reference_depth_m > 0:
-            raise ValueError("reference_depth_m must be a positive depth in metres")
+        if not 0 < self.reference_depth_m <= self.far_depth_m:
+            raise ValueError(
+                "reference_depth_m and far_depth_m must be depths in metres, the first no farther"
+            )
         if not (self.max_depth_m > 0 and self.max_depth_rel >= 0):
             raise ValueError("max_depth_m must be a positive depth, max_depth_rel 0 or more")
 
@@ -134,8 +139,9 @@ class AlignParams:
         """These parameters for views whose median depth is `depth_m`: nearer than
         `reference_depth_m`, every length (the RANSAC tolerance, the held-out residual, the
         spread, the voxels and with them every ICP distance and free-space margin, the
-        distances that make hypotheses one or rivals) x depth / reference, the counts,
-        shares and angles as they are; at the reference or farther, unchanged.
+        distances that make hypotheses one or rivals) x depth / reference; farther than
+        `far_depth_m`, x depth / far; the counts, shares and angles as they are; between
+        the two, where the lengths were set and measured, unchanged.
 
         A camera nearer its scene frames less of it and measures it finer (the features'
         sideways error grows as depth, the depth noise as its square), so a length set for a
@@ -143,10 +149,16 @@ class AlignParams:
         m (the recording with its depths and poses x 0.4, an exact copy of the scene at 0.4
         of the size): the coarse ICP at 8 cm voxels with 32 cm reach slid the best
         hypothesis 45 cm / 40 deg from the truth, and the gate refused (free-space
-        consistency 0.55) a pair it merges from 1 m at 2.6 cm. Farther scenes keep the
-        lengths: sensors' noise grows faster than depth there (docs/ALIGNER.md)."""
-        k = depth_m / self.reference_depth_m
-        if not 0 < k < 1:
+        consistency 0.55) a pair it merges from 1 m at 2.6 cm. A farther scene is the same
+        case the other way: 8 cm is half as much of a room twice the size, whose readings
+        spread at least twice as far (a sensor's noise grows as the depth or faster), and
+        the chance that wrong matches agree within a tolerance is that of the tolerance's
+        share of the scene, so lengths in proportion keep it. The HoloLens walk at twice its
+        size (docs/ALIGNER.md, session 45): see there."""
+        if not depth_m > 0:
+            return self
+        k = min(depth_m / self.reference_depth_m, 1.0) * max(depth_m / self.far_depth_m, 1.0)
+        if k == 1:
             return self
         lengths = ("ransac_tol_m", "min_spread_m", "max_holdout_m", "dedupe_m", "voxel_m")
         lengths += ("coarse_voxel_m", "rival_m")

@@ -177,11 +177,11 @@ def test_third_looks_at_once_find_what_each_finds_alone(tum_two_robots):
             assert np.allclose(T, T0, atol=1e-9)
 
 
-def test_a_nearer_scene_shrinks_every_length_and_nothing_else():
+def test_a_nearer_scene_shrinks_every_length_a_farther_one_grows_them_and_nothing_else():
     """`AlignParams.at_depth`: below the reference depth every length shrinks in proportion
-    (the voxels, and with them every ICP distance and free-space margin); counts, shares
-    and angles stay; at or beyond the reference nothing changes; a reference that is not a
-    depth is refused."""
+    (the voxels, and with them every ICP distance and free-space margin), beyond the far
+    depth it grows in proportion; counts, shares and angles stay; between the two nothing
+    changes; references that are not depths, or out of order, are refused."""
     p = AlignParams()
     near = p.at_depth(0.4 * p.reference_depth_m)
     for name in ("ransac_tol_m", "max_holdout_m", "voxel_m", "coarse_voxel_m", "rival_m"):
@@ -190,9 +190,15 @@ def test_a_nearer_scene_shrinks_every_length_and_nothing_else():
     assert near.spread_needed(0.4) == pytest.approx(p.spread_needed(0.4))  # already relative
     same = ("min_inliers", "min_consistency", "min_overlap", "rival_deg", "geometric")
     assert all(getattr(near, n) == getattr(p, n) for n in same)
-    assert p.at_depth(p.reference_depth_m) == p and p.at_depth(3.0) == p
-    with pytest.raises(ValueError, match="reference_depth_m"):
-        AlignParams(reference_depth_m=0.0)
+    assert p.at_depth(p.reference_depth_m) == p and p.at_depth(p.far_depth_m) == p
+    assert p.at_depth(0.5 * (p.reference_depth_m + p.far_depth_m)) == p
+    far = p.at_depth(2 * p.far_depth_m)  # a room at twice the size: every length x 2
+    for name in ("ransac_tol_m", "max_holdout_m", "voxel_m", "coarse_voxel_m", "rival_m"):
+        assert getattr(far, name) == pytest.approx(2 * getattr(p, name)), name
+    assert all(getattr(far, n) == getattr(p, n) for n in same)
+    for bad in ({"reference_depth_m": 0.0}, {"reference_depth_m": 4.0, "far_depth_m": 3.0}):
+        with pytest.raises(ValueError, match="reference_depth_m"):
+            AlignParams(**bad)
 
 
 def test_a_third_look_merge_the_matches_pull_elsewhere_is_refused():
