@@ -147,16 +147,15 @@ def cmd_vocab_train(args: argparse.Namespace) -> int:
 
 def _settings(cls, **overrides):
     """A service's settings; an unreadable environment variable is one line naming it."""
-    from pydantic import ValidationError
-
-    from fleetmap.errors import BadInput
+    from fleetmap.services.settings import unreadable
 
     try:
         return cls(**overrides)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        where = "__".join(str(p) for p in err["loc"]).upper()
-        raise BadInput(f"setting {where}: {err['msg']} (got {err.get('input')!r})") from None
+    except Exception as exc:
+        why = unreadable(exc)
+        if why is None:
+            raise
+        raise why from None
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from fleetmap.client import AlignerClient, PlaceDBClient
 from fleetmap.errors import Unavailable
+from fleetmap.services.settings import unreadable
 
 
 def _free_port() -> int:
@@ -103,6 +104,9 @@ def embedded_service(kind: str, data_dir: Path | None = None, after: Callable | 
             client.wait_ready(60, alive=thread.is_alive, poll_s=0.05)
         except Unavailable:
             if "error" in box:
+                why = unreadable(box["error"])  # an unreadable setting: one line naming it
+                if why is not None:
+                    raise why from None
                 raise Unavailable(f"embedded {kind} failed: {box['error']}") from box["error"]
             raise
 

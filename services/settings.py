@@ -1,5 +1,6 @@
-"""What both services' settings share: where secrets may come from, and the refusal of
-parameter names from before the settings were nested."""
+"""What both services' settings share: where secrets may come from, the refusal of
+parameter names from before the settings were nested, and one line for a setting that
+cannot be read."""
 
 from __future__ import annotations
 
@@ -25,3 +26,15 @@ def secrets_dir() -> str | None:
     where it exists. Tokens need not sit in the environment or in a compose file."""
     path = os.environ.get("FLEETMAP_SECRETS_DIR") or "/run/secrets"
     return path if os.path.isdir(path) else None
+
+
+def unreadable(exc: Exception) -> BadInput | None:
+    """One line naming the setting a pydantic ValidationError could not read (its variable's
+    path after the prefix, what is wrong, what was given), or None for another error."""
+    from pydantic import ValidationError
+
+    if not isinstance(exc, ValidationError):
+        return None
+    err = exc.errors()[0]
+    where = "__".join(str(p) for p in err["loc"]).upper()
+    return BadInput(f"setting {where}: {err['msg']} (got {err.get('input')!r})")

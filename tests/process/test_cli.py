@@ -61,6 +61,27 @@ def test_mistakes_end_in_one_line_and_the_right_exit_code(args, code, message):
     assert message in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize(
+    ("variable", "value", "named"),
+    [
+        ("FLEETMAP_ALIGNER_ALIGN__FAR_DEPTH_M", "far", "ALIGN__FAR_DEPTH_M"),
+        ("FLEETMAP_ALIGNER_ALIGN__FAR_DEPTH_M", "0.5", "far_depth_m"),  # nearer than 1 m
+        ("FLEETMAP_PLACE_DB_MAX_BODY_BYTES", "lots", "MAX_BODY_BYTES"),
+    ],
+)
+def test_a_setting_the_embedded_services_cannot_read_is_one_line_naming_it(
+    tmp_path, variable, value, named
+):
+    """`fleetmap merge` starts both services in its own process; a setting of theirs that
+    cannot be read ends the job in one line naming it (it was pydantic's four), as
+    `fleetmap serve` says it."""
+    robots = [str(EXAMPLE / r) for r in ("alpha", "bravo")]
+    r = _run("-q", "merge", *robots, "-o", str(tmp_path / "out"), env={variable: value})
+    assert r.returncode == 1, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert line.startswith("fleetmap: error: setting ") and named in line, line
+
+
 def test_service_urls_from_the_environment(tmp_path):
     """FLEETMAP_PLACE_DB_URL stands in for --place-db."""
     r = _run("ingest", str(EXAMPLE / "alpha"), env={"FLEETMAP_PLACE_DB_URL": "http://127.0.0.1:9"})
