@@ -1,7 +1,7 @@
 """Drift injected into real recordings: the fleet graph's merged trajectories against the
 rigid floor, today's rigid placement and the map_merge_3d recipe (issue 22).
 
-    .venv/bin/python bench/drift.py [--cases hololens hololens3 hololens_short sun3d rpy]
+    .venv/bin/python bench/drift.py [--cases hololens hololens3 hololens_short sun3d rpy rpy_long]
         [--rates 0 0.25 0.5 1] [--seeds 2] [--recipe] [--timing] [--json rows.json] [--keep DIR]
 
 Drift model (`fleetmap.fleet.drift`): each robot's own poses get a yaw error about gravity
@@ -43,7 +43,7 @@ from fleetmap.fleet.drift import write_drifted  # noqa: E402
 from fleetmap.registration import kabsch  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
-CASES = ("hololens", "hololens3", "hololens_short", "sun3d", "rpy")  # `cases`' names
+CASES = ("hololens", "hololens3", "hololens_short", "sun3d", "rpy", "rpy_long")  # `cases`' names
 
 
 def cases(data: Path) -> dict:
@@ -70,6 +70,12 @@ def cases(data: Path) -> dict:
         ]
     if rpy.exists():
         out["rpy"] = [("A", rpy, slice(0, 125), np.eye(4)), ("B", rpy, slice(115, None), np.eye(4))]
+        # the even frames and the odd ones: long robots over one desk, a closure at nearly
+        # every keyframe pair
+        out["rpy_long"] = [
+            ("A", rpy, slice(0, None, 2), np.eye(4)),
+            ("B", rpy, slice(1, None, 2), np.eye(4)),
+        ]
     return out
 
 

@@ -10,7 +10,10 @@ random map frame; the true transforms follow from the recordings' poses and T_a_
 - hololens: the HoloLens lounge's two robots (the walk revisits the kitchen);
 - hololens3: three robots, hl_a cut in two with a short shared stretch, plus hl_b;
 - hololens_far: the first 60 frames of hl_a (the corridor) against the last 60 of hl_b: little
-  or no true overlap, where "unmerged" is a right answer.
+  or no true overlap, where "unmerged" is a right answer;
+- rpy_long: TUM fr1_rpy's even frames and its odd ones (a Kinect swung over one desk for 24 s,
+  two robots of 120 frames, no image in both): robots that revisit one place at nearly every
+  keyframe.
 
 Per robot merged into the reference: mean displacement of its fused map points against the
 truth (what a merged map shows), translation/rotation error, and whether it merged; the
@@ -82,6 +85,12 @@ def cases(data: Path) -> dict[str, list[tuple[str, Path, slice, np.ndarray]]]:
         out["no_common_place"] = [
             ("A", hl / "hl_a", slice(None), np.eye(4)),
             ("B", sun / "robot_b", slice(None), None),
+        ]
+    rpy = data / "tum_fr1_rpy"
+    if rpy.exists():  # last: the cases before it keep their random map frames
+        out["rpy_long"] = [
+            ("A", rpy, slice(0, None, 2), np.eye(4)),
+            ("B", rpy, slice(1, None, 2), np.eye(4)),
         ]
     return out
 

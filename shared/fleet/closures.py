@@ -39,6 +39,13 @@ class ClosureParams:
     # 1.6-2.1 cm; the floor 11.9 cm); GNC rejects the ICP that slid elsewhere
     link_tol_m: float = 0.10
     max_links: int = 60  # ICPs of two keyframe clouds (about 0.1 s each)
+    # feature closures refined against depth (`refine_with_depth`), at most this many,
+    # shared out as the links are (`correct.refined_share`): a robot that looks at one
+    # place for long verifies a closure at nearly every pair of its keyframes (TUM fr1_rpy's
+    # even and odd frames, two robots of 120: 759 closures, the graph's stage 50 s, for one that
+    # then bent no map); as many as the links' two rounds, above what the walks' graphs
+    # refine (HoloLens walk, two and three robots: 44-45 and 92-93, so those stay exact)
+    max_refined: int = 120
 
 
 @dataclass(frozen=True)
@@ -158,12 +165,14 @@ def refine_with_depth(
     keyframes: dict[str, list],
     params: ClosureParams = ClosureParams(),
     cache: dict | None = None,
+    only: set[tuple] | None = None,
 ) -> list[Closure]:
     """Each feature closure refined by point-to-plane ICP between its two keyframes' depth
     clouds (in the cameras' frames), kept where ICP overlaps well and moves the fit by less
     than the 3D tolerance (else the feature fit stands). keyframes[R]: the extracted
     `Keyframe`s (map-cloud points in the robot's map frame); `cache`: the keyframe clouds
-    built (by robot, keyframe and voxel), kept between calls by the caller."""
+    built (by robot, keyframe and voxel), kept between calls by the caller; `only`: the
+    closures (robot_a, i, robot_b, j) to refine, the others as they are (None: all)."""
     from threadpoolctl import threadpool_limits
 
     from fleetmap.mapcloud import MapCloud, icp, with_normals
@@ -183,7 +192,9 @@ def refine_with_depth(
     out = []
     with threadpool_limits(1):  # many small problems: OpenMP threads only contend
         for c in closures:
-            if c.source == "features":
+            if c.source == "features" and (
+                only is None or (c.robot_a, c.i, c.robot_b, c.j) in only
+            ):
                 source, target = cloud(c.robot_b, c.j, normals=False), cloud(c.robot_a, c.i)
                 T, fitness, _ = icp(
                     source, target, c.T_a_b, distances=(params.tol_m, params.tol_m / 2),

@@ -104,6 +104,13 @@ def spread_links(pairs, budget: int) -> list[tuple]:
     return sorted(out)
 
 
+def refined_share(closures: list[Closure], budget: int) -> set[tuple]:
+    """The closures (robot_a, i, robot_b, j) to refine against depth, at most `budget`:
+    every pair of robots (a robot with itself too) its share, evenly spread along it
+    (`spread_links`); all of them where they are no more than the budget."""
+    return set(spread_links([(c.robot_a, c.i, c.robot_b, c.j) for c in closures], budget))
+
+
 def fit_closures(pairs, poses: dict[str, np.ndarray], edges: dict) -> list[Closure]:
     """Each pairwise fit as a closure at each overlap of its pair: the keyframes' relative
     pose that the fit T_a_b implies there."""
@@ -354,7 +361,8 @@ def correct_fleet(
     if not bends(quick, params):
         return quick
     clouds: dict = {}  # each keyframe's cloud built once for every round's ICPs
-    refined, fleet = refine_with_depth(found, keyframes, params.closure, clouds), quick
+    share = refined_share(found, params.closure.max_refined)
+    refined, fleet = refine_with_depth(found, keyframes, params.closure, clouds, share), quick
     for _ in range(params.link_rounds):  # the links' ICPs from the last solution
         solved = fleet.solution.poses
         links = link_closures(keyframes, overlaps, poses, edges, params.closure, solved, clouds)

@@ -28,6 +28,7 @@ from fleetmap.fleet.correct import (
     bends,
     correct_fleet,
     link_trials,
+    refined_share,
     rigid_fleet,
     unbendable,
     with_fit_closures,
@@ -195,11 +196,17 @@ class LiveGraph:
 
     def _refine(self, kfs: dict, index: dict, deadline: float) -> bool:
         """Refine the present feature closures against depth until the deadline (both
-        keyframes need a stored view); True when all are."""
+        keyframes need a stored view), at most `max_refined` of them (`refined_share`, as
+        `fleetmap merge` chooses them; those refined earlier stay refined); True when all
+        are."""
         viewed = {k for r in kfs for k in self.db.view_ids(r)}
-        for c in self._present(index):
+        present = self._present(index)
+        share = refined_share(
+            [self._indexed(c, index) for c in present], self.params.closure.max_refined
+        )
+        for c in present:
             p = self._key(c)
-            if p in self._refined:
+            if p in self._refined or (*index[c.i], *index[c.j]) not in share:
                 continue
             if time.monotonic() > deadline:
                 return False

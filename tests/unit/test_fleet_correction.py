@@ -104,3 +104,43 @@ def test_link_trials_share_the_budget_by_robot_pair():
     few = {q for q in pairs if q[2] == "B"} | {("A", i, "C", 0) for i in range(4)}
     assert sum(q[2] == "B" for q in spread_links(few, 30)) == 26  # A-C takes its 4
     assert spread_links(pairs, 500) == sorted(pairs)  # under the budget: every one
+
+
+def test_feature_closures_beyond_the_budget_stay_unrefined():
+    """A robot that looks at one place for long verifies a closure at nearly every pair of
+    its keyframes (TUM fr1_rpy's even and odd frames as two robots: 759, the graph's stage 50 s
+    for a graph that bent no map). At most `max_refined` are refined against depth, shared
+    out by pair of robots as the links are; all of them under the budget (the HoloLens
+    walks' graphs refine 44-93: unchanged). Those left out keep their feature fit."""
+    from dataclasses import replace
+
+    from fleetmap.fleet.closures import Closure, ClosureParams, refine_with_depth
+    from fleetmap.fleet.correct import refined_share
+
+    found = [Closure("A", i, "A", i + 12, np.eye(4), 20) for i in range(300)]
+    found += [Closure("A", i, "B", i, np.eye(4), 20) for i in range(40)]
+    share = refined_share(found, ClosureParams().max_refined)
+    assert len(share) == ClosureParams().max_refined == 120
+    assert sum(q[2] == "B" for q in share) == 40  # A-B takes all of its 40, A-A the rest
+    assert refined_share(found[-100:], 120) == {
+        (c.robot_a, c.i, c.robot_b, c.j) for c in found[-100:]
+    }
+    # a room's corner seen by two keyframes 1 cm apart, three closures started 1 cm off:
+    # only the one in `only` is refined (ICP finds the true 1 cm); the others stand
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(-1, 1, (2, 3000))
+    pts = np.concatenate(
+        [np.stack([u, v, np.full_like(u, 2.0)], 1), np.stack([np.full_like(u, 1.0), u, 2 + v], 1)]
+        + [np.stack([u, np.full_like(u, 1.0), 2 + v], 1)]
+    ).astype(np.float32)
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    kf = SimpleNamespace(frame=SimpleNamespace(T_map_cam=np.eye(4)), points=pts)
+    moved = SimpleNamespace(frame=SimpleNamespace(T_map_cam=np.linalg.inv(shift)), points=pts)
+    keyframes = {"A": [kf, kf, kf], "B": [moved, moved, moved]}  # B's camera 1 cm along -x
+    start = [Closure("A", i, "B", i, np.eye(4), 20) for i in range(3)]
+    out = refine_with_depth(start, keyframes, ClosureParams(), only={("A", 1, "B", 1)})
+    assert [c.source for c in out] == ["features", "depth", "features"]
+    assert out[0] is start[0] and out[2] is start[2]
+    np.testing.assert_allclose(out[1].T_a_b[:3, 3], [-0.01, 0, 0], atol=2e-3)  # b's camera in a's
+    assert refine_with_depth([replace(start[0])], keyframes)[0].source == "depth"  # None: all
