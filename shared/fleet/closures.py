@@ -65,6 +65,11 @@ class Closure:
     # a depth closure's surfaces (`surface_information`): which directions its ICP pinned
     surfaces: np.ndarray | None = None
 
+    @property
+    def pair(self) -> tuple[str, int, str, int]:
+        """(robot_a, i, robot_b, j): the keyframe pair, as candidate and overlap pairs are."""
+        return self.robot_a, self.i, self.robot_b, self.j
+
 
 def camera_points(f: Frame) -> tuple[np.ndarray, np.ndarray]:
     """The frame's feature points of shape (N, 3) in its camera's frame, and their mask."""
@@ -192,9 +197,7 @@ def refine_with_depth(
     out = []
     with threadpool_limits(1):  # many small problems: OpenMP threads only contend
         for c in closures:
-            if c.source == "features" and (
-                only is None or (c.robot_a, c.i, c.robot_b, c.j) in only
-            ):
+            if c.source == "features" and (only is None or c.pair in only):
                 source, target = cloud(c.robot_b, c.j, normals=False), cloud(c.robot_a, c.i)
                 T, fitness, _ = icp(
                     source, target, c.T_a_b, distances=(params.tol_m, params.tol_m / 2),

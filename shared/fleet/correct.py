@@ -108,7 +108,7 @@ def refined_share(closures: list[Closure], budget: int) -> set[tuple]:
     """The closures (robot_a, i, robot_b, j) to refine against depth, at most `budget`:
     every pair of robots (a robot with itself too) its share, evenly spread along it
     (`spread_links`); all of them where they are no more than the budget."""
-    return set(spread_links([(c.robot_a, c.i, c.robot_b, c.j) for c in closures], budget))
+    return set(spread_links([c.pair for c in closures], budget))
 
 
 def fit_closures(pairs, poses: dict[str, np.ndarray], edges: dict) -> list[Closure]:

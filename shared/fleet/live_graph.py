@@ -201,12 +201,11 @@ class LiveGraph:
         are."""
         viewed = {k for r in kfs for k in self.db.view_ids(r)}
         present = self._present(index)
-        share = refined_share(
-            [self._indexed(c, index) for c in present], self.params.closure.max_refined
-        )
-        for c in present:
+        indexed = [self._indexed(c, index) for c in present]
+        share = refined_share(indexed, self.params.closure.max_refined)
+        for c, at in zip(present, indexed, strict=True):
             p = self._key(c)
-            if p in self._refined or (*index[c.i], *index[c.j]) not in share:
+            if p in self._refined or at.pair not in share:
                 continue
             if time.monotonic() > deadline:
                 return False

@@ -112,8 +112,6 @@ def test_feature_closures_beyond_the_budget_stay_unrefined():
     for a graph that bent no map). At most `max_refined` are refined against depth, shared
     out by pair of robots as the links are; all of them under the budget (the HoloLens
     walks' graphs refine 44-93: unchanged). Those left out keep their feature fit."""
-    from dataclasses import replace
-
     from fleetmap.fleet.closures import Closure, ClosureParams, refine_with_depth
     from fleetmap.fleet.correct import refined_share
 
@@ -122,17 +120,14 @@ def test_feature_closures_beyond_the_budget_stay_unrefined():
     share = refined_share(found, ClosureParams().max_refined)
     assert len(share) == ClosureParams().max_refined == 120
     assert sum(q[2] == "B" for q in share) == 40  # A-B takes all of its 40, A-A the rest
-    assert refined_share(found[-100:], 120) == {
-        (c.robot_a, c.i, c.robot_b, c.j) for c in found[-100:]
-    }
+    assert refined_share(found[-100:], 120) == {c.pair for c in found[-100:]}
     # a room's corner seen by two keyframes 1 cm apart, three closures started 1 cm off:
     # only the one in `only` is refined (ICP finds the true 1 cm); the others stand
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-1, 1, (2, 3000))
-    pts = np.concatenate(
-        [np.stack([u, v, np.full_like(u, 2.0)], 1), np.stack([np.full_like(u, 1.0), u, 2 + v], 1)]
-        + [np.stack([u, np.full_like(u, 1.0), 2 + v], 1)]
-    ).astype(np.float32)
+    wall, side = np.stack([u, v, np.full_like(u, 2.0)], 1), np.stack([np.ones_like(u), u, 2 + v], 1)
+    floor = np.stack([u, np.ones_like(u), 2 + v], 1)
+    pts = np.concatenate([wall, side, floor]).astype(np.float32)
     shift = np.eye(4)
     shift[:3, 3] = [0.01, 0.0, 0.0]
     kf = SimpleNamespace(frame=SimpleNamespace(T_map_cam=np.eye(4)), points=pts)
@@ -143,4 +138,4 @@ def test_feature_closures_beyond_the_budget_stay_unrefined():
     assert [c.source for c in out] == ["features", "depth", "features"]
     assert out[0] is start[0] and out[2] is start[2]
     np.testing.assert_allclose(out[1].T_a_b[:3, 3], [-0.01, 0, 0], atol=2e-3)  # b's camera in a's
-    assert refine_with_depth([replace(start[0])], keyframes)[0].source == "depth"  # None: all
+    assert refine_with_depth(start[:1], keyframes)[0].source == "depth"  # None: all
