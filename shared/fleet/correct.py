@@ -293,10 +293,27 @@ def unbendable(poses: dict[str, np.ndarray], params: CorrectionParams) -> str:
     return ""
 
 
-def bends(fleet: FleetCorrection, params: CorrectionParams) -> bool:
-    """Whether a solution on unrefined closures bends any map by half `min_bend_m`: only
-    then can the depth-refined graph apply a correction."""
-    return any(c.bend_m >= params.min_bend_m / 2 for c in fleet.robots.values())
+def bends(fleet: FleetCorrection, params: CorrectionParams, found: int = 0) -> bool:
+    """Whether a solution on `found` unrefined feature closures bends any map by enough
+    that the depth-refined graph could apply a correction (`trigger_m`)."""
+    return any(c.bend_m >= trigger_m(params, found) for c in fleet.robots.values())
+
+
+def trigger_m(params: CorrectionParams, found: int) -> float:
+    """The quick solution's bend (metres) from which the closures are refined against
+    depth: `min_bend_m` less half the share of the refined graph's closures that the
+    refinement changes (at most `max_refined` of the `found` feature closures, plus one
+    round's `max_links` link closures). Where it changes them all (no more closures than
+    the budget: every walk in the data), half `min_bend_m`: the refined bend has come out
+    at 0.9-1.14x the quick one with drift, but on few closures also 17x a quick bend near
+    zero, which the links make (SUN3D, not applied). Where it changes a few of many, the
+    refined graph keeps the quick one's unrefined closures and bends as it does (robots
+    that look at one place for long, no drift: TUM fr1_rpy's even and odd frames, 759
+    closures, 2.25 -> 2.04 cm; the HoloLens walk's, 252, 2.21 -> 1.81 cm; docs/BENCHMARKS.md
+    "Session 48")."""
+    c = params.closure
+    changed = (min(found, c.max_refined) + c.max_links) / (found + c.max_links)
+    return params.min_bend_m * (1 - changed / 2)
 
 
 def rigid_fleet(keyframes: dict, placed: dict, params: CorrectionParams, why: str):
@@ -330,8 +347,9 @@ def correct_fleet(
     `min_bend_m`, no correction could be applied and no graph is built (a desk seen from
     one place: TUM fr1_rpy windows paid 8-36 s for closures that changed nothing). Else
     the graph is first solved on the feature closures alone (no ICP):
-    where no robot bends by half `min_bend_m` there, the fleet has shown no drift the
-    refined graph could apply, and the rigid placement stands at a fraction of the cost
+    where no robot bends by `trigger_m` there (half `min_bend_m` on as many closures as
+    the refinement's budget, more on many), the fleet has shown no drift the refined graph
+    could apply, and the rigid placement stands at a fraction of the cost
     (the depth refinement is 60-85% of the closures' time: docs/BENCHMARKS.md "Drift")."""
     keyframes = {r: kfs for r, kfs in keyframes.items() if r in placed and kfs}
     if reference not in keyframes:
@@ -358,7 +376,7 @@ def correct_fleet(
     found = [c for c in found if c.robot_a in keyframes and c.robot_b in keyframes]
     pairs = {q for q in pairs if q[0] in keyframes and q[2] in keyframes}
     quick = solve(with_fit_closures(found, pairs, poses, edges))
-    if not bends(quick, params):
+    if not bends(quick, params, len(found)):
         return quick
     clouds: dict = {}  # each keyframe's cloud built once for every round's ICPs
     share = refined_share(found, params.closure.max_refined)

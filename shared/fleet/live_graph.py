@@ -128,7 +128,7 @@ class LiveGraph:
             kfs, placed, edges, [], ref, self.params,
             closures=with_fit_closures(found, overlap_pairs, poses, edges),
         )  # fmt: skip
-        if not bends(fleet, self.params):
+        if not bends(fleet, self.params, len(found)):
             return fleet
         if not self._refine(kfs, index, deadline):
             return None

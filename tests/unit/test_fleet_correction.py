@@ -139,3 +139,20 @@ def test_feature_closures_beyond_the_budget_stay_unrefined():
     assert out[0] is start[0] and out[2] is start[2]
     np.testing.assert_allclose(out[1].T_a_b[:3, 3], [-0.01, 0, 0], atol=2e-3)  # b's camera in a's
     assert refine_with_depth(start[:1], keyframes)[0].source == "depth"  # None: all
+
+
+def test_many_closures_are_refined_only_where_the_quick_graph_bends_near_the_gate():
+    """Within the refinement's budget the quick graph triggers it at half `min_bend_m`, as
+    it always did (the drifted walks: 44-93 closures, bends of 5-40 cm). Beyond it, where
+    the refinement changes a few of many closures, the refined graph bends as the quick one
+    does, and the trigger rises toward the gate: TUM fr1_rpy's even and odd frames (759
+    closures, no drift) bend 2.25 cm unrefined and 2.04 refined, under 4 cm either way."""
+    from fleetmap.fleet.correct import CorrectionParams, FleetCorrection, bends, trigger_m
+    from fleetmap.fleet.graph import Solution
+
+    p = CorrectionParams()
+    assert all(trigger_m(p, n) == p.min_bend_m / 2 for n in (0, 44, 93, p.closure.max_refined))
+    rising = [trigger_m(p, n) for n in (121, 252, 759, 100_000)]
+    assert rising == sorted(rising) and p.min_bend_m / 2 < rising[0] < rising[-1] < p.min_bend_m
+    desk = FleetCorrection({"A": SimpleNamespace(bend_m=0.0225)}, Solution({}, np.zeros(0), 0.0))
+    assert bends(desk, p, 93) and not bends(desk, p, 759)
