@@ -195,7 +195,9 @@ def refine_with_depth(
         return with_normals(pc, voxel) if normals else pc
 
     out = []
-    with threadpool_limits(1):  # many small problems: OpenMP threads only contend
+    # many small problems: BLAS threads only contend. Open3D 0.20's ICP reduces on its own
+    # TBB threads, which this does not reach (py-spy --native; both cores busy: session 48)
+    with threadpool_limits(1):
         for c in closures:
             if c.source == "features" and (only is None or c.pair in only):
                 source, target = cloud(c.robot_b, c.j, normals=False), cloud(c.robot_a, c.i)
