@@ -301,7 +301,7 @@ def bends(fleet: FleetCorrection, params: CorrectionParams, found: int = 0) -> b
 
 def trigger_m(params: CorrectionParams, found: int) -> float:
     """The quick solution's bend (metres) from which the closures are refined against
-    depth: `min_bend_m` less half the share of the refined graph's closures that the
+    depth: `min_bend_m` (1 - f / 2), f the share of the refined graph's closures that the
     refinement changes (at most `max_refined` of the `found` feature closures, plus one
     round's `max_links` link closures). Where it changes them all (no more closures than
     the budget: every walk in the data), half `min_bend_m`: the refined bend has come out
