@@ -339,6 +339,23 @@ def test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_
     right_or_refused(fit, err)
 
 
+def test_a_room_at_0_4_of_its_size_through_a_d435_and_another_camera_is_not_merged_off(
+    sun3d, tmp_path
+):
+    """SUN3D robot_a frames 10-30 and robot_b 30-50 (38% of B shared) at 0.4 of their size
+    (the room then seen from 1.1-1.4 m), through a D435's depth noise, B by another camera
+    (recall seed 75's conditions): with the gate's lengths held at a room's down to 1 m the
+    second look merged it 17.4 cm from the truth (at the recording's size; 113 ASIFT inliers,
+    held-out residual 3.9 cm, 7% of the depth allowed), and with the pose tolerances alone in
+    proportion the third look found the same basin (firm free space 0.96 on 3 cm voxels).
+    Every length in proportion below 2 m (`AlignParams.reference_depth_m`): refused on
+    its free space. Right within 5 cm at the recording's size, or refused."""
+    T = np.loadtxt(sun3d / "T_a_b.txt")
+    A, B = (sun3d / "robot_a", slice(10, 30)), (sun3d / "robot_b", slice(30, 50))
+    fit, err = merge_windows(tmp_path, A, B, 75, T, (0.4, D435_SIGMA_1M))
+    right_or_refused(fit, err)
+
+
 def test_a_desk_seen_from_0_4_m_is_merged_as_from_1_m(tum_rpy, tmp_path):
     """TUM fr1_rpy windows [0:50] and [130:180] (27% of the desk shared), the scene at 0.4
     of its size (depths and poses x 0.4, `cut_recording`'s scale: the desk from 0.4 m, as a
@@ -374,7 +391,9 @@ def test_two_places_at_desk_scale_stay_unmerged(hololens, tum_rpy, tmp_path, mon
     these map frames (consistency 0.70, firm 0.83: a wrong merge, before and after the gate's
     lengths followed the scene); their grey levels where they meet correlate 0.08. The first
     look refuses them so, and the third finds no alignment; the second (ASIFT), which adds
-    nothing the test asks about, is off (39 -> 28 s beside a benchmark)."""
+    nothing the test asks about, is off (39 -> 28 s beside a benchmark). Since every length
+    follows the scene below 2 m (session 49), the first look refuses them on free space
+    already (0.57 on the desk's own margins), or on their grey levels."""
     monkeypatch.setenv("FLEETMAP_ALIGNER_ALIGN__SECOND_LOOK", "false")
     M = {r: random_frame(s) for s, r in enumerate("AB", start=3)}
     dirs = {}
@@ -384,7 +403,8 @@ def test_two_places_at_desk_scale_stay_unmerged(hololens, tum_rpy, tmp_path, mon
     assert main(["-q", "merge", f"A={dirs['A']}", f"B={dirs['B']}", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["unmerged"] == ["B"] and "B" not in report["transforms"]
-    assert "grey-level correlation" in report["fits"][0]["reason"]
+    first = report["fits"][0]["reason"].split(";")[0]  # the first look's refusal
+    assert "grey-level correlation" in first or first.startswith("free-space consistency"), first
 
 
 def test_a_room_seen_through_more_noise_than_the_third_look_can_judge_is_not_merged(
