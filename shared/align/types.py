@@ -119,7 +119,7 @@ class AlignParams:
     # has them shrunk in proportion (`at_depth`). 1 m (the TUM desk) until session 49: SUN3D
     # at 0.4 of its size (1.1-1.4 m) through a D435 merged 17 cm off. 2.8 m moved the rooms
     # themselves (SUN3D's own fit at 2.3 m 3 -> 10 cm; the lounge merged onto the study
-    # room); 2 m keeps every room measured as it was (docs/ALIGNER.md, "Session 49")
+    # room); at 2 m every real room pair merges as before (docs/ALIGNER.md, "Session 49")
     reference_depth_m: float = 2.0
     # the farthest: SUN3D's study room, whose robot_a sees it from 3.3-3.5 m (the HoloLens
     # lounge 1.7-2.8 m); a farther scene has them grown in proportion (`at_depth`)
