@@ -193,8 +193,33 @@ def choose(
             # rivals were judged unrefined: compare like with like (the same counts)
             polished = dataclasses.replace(best, T_a_b=T, source=source)
             polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
-            return polished, top[1:]
-    return best, top[1:]
+            return polished, _rivals(polished, top[1:], R, clouds, probe, p, memo)
+    return best, _rivals(best, top[1:], R, clouds, probe, p, memo)
+
+
+def _rivals(best, others, R: Correspondences, clouds, probe, p: AlignParams, memo) -> list:
+    """`others` but those that refine into `best`'s place: a rival scoring near the best
+    (`ambiguity`) beyond the rivals' distance is refined as the winner was (`_refinements`,
+    the one the raw matches agree with best), and where it lands within the rivals'
+    distance of the winner the two were one basin the coarse ICP left apart, not two
+    places. Others are kept as they are (judged unrefined, as the winner's counts)."""
+    cb1, ca1 = clouds[1].at(p.voxel_m, normals=False), clouds[0].at(p.voxel_m)
+    kept = []
+    for h in others:
+        near = _within_rivals(h.T_a_b, best.T_a_b, probe, p)
+        if not near and h.score >= p.ambiguity * best.score:
+            refined = once(memo, "refine", h.T_a_b, lambda T: _refinements(T, clouds, p))
+            T = ranked([(T, h.source + how) for T, how in refined], R, cb1, ca1, p)[0][0]
+            if _within_rivals(T, best.T_a_b, probe, p):
+                log.info("a rival refined into the winner's place: one basin")
+                continue
+        kept.append(h)
+    return kept
+
+
+def _within_rivals(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> bool:
+    dt, dr = displacement_rms(T, T0, probe), transform_error(T, T0)[1]
+    return dt <= p.rival_m and dr <= p.rival_deg
 
 
 def _seen(views) -> list[SeenDepth]:
