@@ -32,10 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.align.hypotheses import choose, probe_points
+from fleetmap.align.hypotheses import beyond_rivals, choose, probe_points
 from fleetmap.align.manhattan import manhattan_starts
 from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
-from fleetmap.geometry import apply, displacement_rms, invert, transform_error
+from fleetmap.geometry import apply, displacement_rms, invert
 from fleetmap.mapcloud import REG, SEEDED, free_space_check, icp, overlap_fitness
 
 log = logging.getLogger(__name__)
@@ -337,16 +337,6 @@ def judged_basins(found, clouds, seen, voxel: float, look: GeometricLook, floor)
         f"grey-level correlation at best {r:.2f} before refining (judged from {screen:.2f}, "
         f"need {look.min_correlation})"
     )
-
-
-def beyond_rivals(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
-    """How far T lies from T0 ("0.80 m / 14 deg") where that is beyond the gate's rivals
-    (`rival_m`, `rival_deg`), else "": a passing rival, or a refinement that slid. A
-    HoloLens lounge window merged with a SUN3D study room (other map frames) on a basin at
-    overlap 0.11 whose refinement slid 0.79 m / 14 deg; right merges' refinements moved
-    0-1 cm (docs/ALIGNER.md, session 27)."""
-    dt, dr = displacement_rms(T, T0, probe), transform_error(T, T0)[1]
-    return f"{dt:.2f} m / {dr:.0f} deg" if dt > p.rival_m or dr > p.rival_deg else ""
 
 
 def unfirm(T: np.ndarray, pair, p: AlignParams, depth: float) -> str:

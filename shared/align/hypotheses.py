@@ -92,6 +92,16 @@ def probe_points(cloud) -> np.ndarray:
     return pts[:: max(1, len(pts) // 300)]
 
 
+def beyond_rivals(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> str:
+    """How far T lies from T0 ("0.80 m / 14 deg") where that is beyond the gate's rivals
+    (`rival_m`, `rival_deg`), else "": a passing rival, or a refinement that slid. A
+    HoloLens lounge window merged with a SUN3D study room (other map frames) on a basin at
+    overlap 0.11 whose refinement slid 0.79 m / 14 deg; right merges' refinements moved
+    0-1 cm (docs/ALIGNER.md, session 27)."""
+    dt, dr = displacement_rms(T, T0, probe), transform_error(T, T0)[1]
+    return f"{dt:.2f} m / {dr:.0f} deg" if dt > p.rival_m or dr > p.rival_deg else ""
+
+
 def _distinct(hyps: list[Hypothesis], probe: np.ndarray, min_m: float) -> list[Hypothesis]:
     """Greedy: keep a hypothesis unless it moves the probe points within `min_m` (RMS) of
     one already kept. Order = priority."""
@@ -193,33 +203,27 @@ def choose(
             # rivals were judged unrefined: compare like with like (the same counts)
             polished = dataclasses.replace(best, T_a_b=T, source=source)
             polished.fitness = overlap_fitness(cb1, ca1, T, 2 * v1)
-            return polished, _rivals(polished, top[1:], R, clouds, probe, p, memo)
-    return best, _rivals(best, top[1:], R, clouds, probe, p, memo)
+            return polished, _rivals(polished, top[1:], R, clouds, (cb1, ca1), probe, p, memo)
+    return best, _rivals(best, top[1:], R, clouds, (cb1, ca1), probe, p, memo)
 
 
-def _rivals(best, others, R: Correspondences, clouds, probe, p: AlignParams, memo) -> list:
+def _rivals(best, others, R: Correspondences, clouds, fine, probe, p: AlignParams, memo) -> list:
     """`others` but those that refine into `best`'s place: a rival scoring near the best
     (`ambiguity`) beyond the rivals' distance is refined as the winner was (`_refinements`,
     the one the raw matches agree with best), and where it lands within the rivals'
     distance of the winner the two were one basin the coarse ICP left apart, not two
-    places. Others are kept as they are (judged unrefined, as the winner's counts)."""
-    cb1, ca1 = clouds[1].at(p.voxel_m, normals=False), clouds[0].at(p.voxel_m)
+    places. Others are kept as they are (judged unrefined, as the winner's counts).
+    `fine`: B's and A's clouds at the fine voxel."""
     kept = []
     for h in others:
-        near = _within_rivals(h.T_a_b, best.T_a_b, probe, p)
-        if not near and h.score >= p.ambiguity * best.score:
+        if beyond_rivals(h.T_a_b, best.T_a_b, probe, p) and h.score >= p.ambiguity * best.score:
             refined = once(memo, "refine", h.T_a_b, lambda T: _refinements(T, clouds, p))
-            T = ranked([(T, h.source + how) for T, how in refined], R, cb1, ca1, p)[0][0]
-            if _within_rivals(T, best.T_a_b, probe, p):
+            T = ranked([(T, h.source + how) for T, how in refined], R, *fine, p)[0][0]
+            if not beyond_rivals(T, best.T_a_b, probe, p):
                 log.info("a rival refined into the winner's place: one basin")
                 continue
         kept.append(h)
     return kept
-
-
-def _within_rivals(T: np.ndarray, T0: np.ndarray, probe: np.ndarray, p: AlignParams) -> bool:
-    dt, dr = displacement_rms(T, T0, probe), transform_error(T, T0)[1]
-    return dt <= p.rival_m and dr <= p.rival_deg
 
 
 def _seen(views) -> list[SeenDepth]:

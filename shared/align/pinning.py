@@ -15,8 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from fleetmap.align.geometric_look import beyond_rivals
-from fleetmap.align.hypotheses import rigid_hypotheses
+from fleetmap.align.hypotheses import beyond_rivals, rigid_hypotheses
 from fleetmap.align.types import AlignParams, AlignResult
 from fleetmap.align.validation import better_nearby, distinct, outnumbers
 from fleetmap.correspondences import Correspondences
