@@ -28,21 +28,21 @@ def _add_keyframe_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("keyframe selection")
     g.add_argument(
         "--kf-translation",
-        type=float,
+        type=_threshold,
         default=KF.min_translation_m,
         metavar="M",
         help="new keyframe after moving this far (default %(default)g m)",
     )
     g.add_argument(
         "--kf-rotation",
-        type=float,
+        type=_threshold,
         default=KF.min_rotation_deg,
         metavar="DEG",
         help="new keyframe after turning this much (default %(default)g deg)",
     )
     g.add_argument(
         "--kf-interval",
-        type=float,
+        type=_threshold,
         default=KF.max_interval_s,
         metavar="S",
         help="new keyframe after this long at the latest (default %(default)g s)",
@@ -60,7 +60,7 @@ def _add_bag_args(p: argparse.ArgumentParser) -> None:
 def _add_max_views(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--max-views",
-        type=int,
+        type=_positive_count,
         default=DEFAULT_MERGE.views.max_views,
         help="views per robot sent to the aligner (default %(default)s)",
     )
@@ -69,7 +69,7 @@ def _add_max_views(p: argparse.ArgumentParser) -> None:
 def _add_voxel(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--voxel",
-        type=float,
+        type=_positive_m,
         default=DEFAULT_MERGE.voxel_m,
         metavar="M",
         help="merged map voxel size (default %(default)g m)",
@@ -95,15 +95,37 @@ exit status: 0 done, 1 an error while running (bad data, unreachable service), 2
 mistake, 130 interrupted."""
 
 
-def _speed(text: str) -> float:
-    """--speed: a finite number >= 0 (argparse turns the ValueError into a usage error)."""
-    x = float(text)
-    if not (x >= 0 and x != float("inf")):
-        raise ValueError(text)
-    return x
+def _number(
+    name: str,
+    low: float,
+    *,
+    above: bool,
+    finite: bool = True,
+    integer: bool = False,
+    high: float = float("inf"),
+):
+    """An argparse type: a number at least `low` (`above`: more than `low`) and at most
+    `high`, never NaN, finite where `finite`; argparse turns the ValueError into a usage
+    error naming it."""
+
+    def parse(text: str):
+        x = int(text) if integer else float(text)
+        ok = (x > low if above else x >= low) and x == x and (not finite or abs(x) != float("inf"))
+        ok = ok and x <= high
+        if not ok:
+            raise ValueError(text)
+        return x
+
+    parse.__name__ = name
+    return parse
 
 
-_speed.__name__ = "speed (0 or more)"
+_positive_m = _number("length (a number of metres above 0)", 0, above=True)
+_positive_count = _number("count (a whole number of 1 or more)", 0, above=True, integer=True)
+_seconds = _number("seconds (a number of 0 or more)", 0, above=False)
+_threshold = _number("threshold (0 or more; inf: never)", 0, above=False, finite=False)
+_port = _number("port (1-65535)", 0, above=True, integer=True, high=65535)
+_speed = _number("speed (0 or more)", 0, above=False)
 
 
 def _url_arg(p: argparse.ArgumentParser, flag: str, env: str, required: bool, what: str) -> None:
@@ -155,9 +177,9 @@ def _data_commands(sub) -> None:
     p = vocab.add_parser("train", help="train a vocabulary (thesis Algorithm 1)")
     p.add_argument("inputs", nargs="+", metavar="IMAGES_OR_ROBOT_DIRS")
     p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FILE")
-    p.add_argument("--gist-clusters", type=int, default=8, help="GIST codebook size")
-    p.add_argument("--words", type=int, default=500, help="SIFT visual words")
-    p.add_argument("--stride", type=int, default=1, help="every n-th image of a folder")
+    p.add_argument("--gist-clusters", type=_positive_count, default=8, help="GIST codebook size")
+    p.add_argument("--words", type=_positive_count, default=500, help="SIFT visual words")
+    p.add_argument("--stride", type=_positive_count, default=1, help="every n-th image of a folder")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--source", default="", help="text recorded as the training source")
     p.set_defaults(func=commands.cmd_vocab_train)
@@ -171,7 +193,7 @@ def _data_commands(sub) -> None:
     p = sub.add_parser("simulate", help="render a synthetic fleet recording (TUM layout)")
     p.add_argument("out", metavar="OUT_DIR")
     p.add_argument("--robots", type=int, default=3, help="how many robots")
-    p.add_argument("--frames", type=int, default=30, help="frames per robot")
+    p.add_argument("--frames", type=_positive_count, default=30, help="frames per robot")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.set_defaults(func=commands.cmd_simulate)
 
@@ -181,7 +203,7 @@ def _service_commands(sub) -> None:
     p = sub.add_parser("serve", help="run a service in the foreground")
     p.add_argument("service", choices=["place-db", "aligner"])
     p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=None, help="default 8100 / 8200")
+    p.add_argument("--port", type=_port, default=None, help="default 8100 / 8200")
     p.add_argument("--data-dir", help="place database storage (default: per-user data folder)")
     p.add_argument(
         "--database",
@@ -211,7 +233,7 @@ def _service_commands(sub) -> None:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
         "--wait",
-        type=float,
+        type=_seconds,
         default=120.0,
         help="seconds to wait for queued overlap detection (default 120)",
     )
@@ -228,7 +250,7 @@ def _pair_commands(sub) -> None:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--method", default="default", choices=list(METHODS))
     _add_max_views(p)
-    p.add_argument("--wait", type=float, default=120.0, help="seconds to wait for overlaps")
+    p.add_argument("--wait", type=_seconds, default=120.0, help="seconds to wait for overlaps")
     _add_robot_args(p)
     p.set_defaults(func=commands.cmd_align)
 
