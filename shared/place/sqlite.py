@@ -43,6 +43,7 @@ class SQLiteStore(GroupCommit):
         self.path = Path(path)
         self.where = str(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._held = files.hold(self.path)  # one process a database
         lost_log = files.log_was_lost(self.path)  # before SQLite opens it (a new log)
         self.vocab_id = vocab_id
         self.storage_errors = 0
@@ -367,6 +368,7 @@ class SQLiteStore(GroupCommit):
         with self._write_lock:
             self._closed = True
             files.close_cleanly(self._db, self.path)
+            self._held.close()
 
     def _read(self, sql: str, args: tuple = ()) -> sqlite3.Cursor:
         """A read on this thread's own connection: WAL readers never block the writer."""

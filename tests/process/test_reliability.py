@@ -160,6 +160,37 @@ def test_a_damaged_database_file_is_one_line_not_a_traceback(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_a_second_place_database_on_one_folder_is_refused_and_the_first_keeps_serving(
+    tmp_path, sun3d_frames
+):
+    """A second `serve place-db` on the same --data-dir started silently; each kept its own
+    robot table, so the first answered 404 for robots stored through the second, and its
+    live-map worker failed on them in a loop (an outside tester's review, session 51)."""
+    from tests.servers import Service, http
+
+    svc = Service("place-db", tmp_path / "db").start()
+    try:
+        r = http.post(
+            svc.url + "/robots/robot_a/keyframes", content=sun3d_frames["robot_a"][0], headers=OCTET
+        )
+        assert r.status_code == 201
+        second = subprocess.run(
+            [sys.executable, "-m", "fleetmap.services.cli", "serve", "place-db", "--port", "9",
+             "--data-dir", str(tmp_path / "db")],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert second.returncode == 1 and "in use by another process" in second.stderr
+        assert "Traceback" not in second.stderr
+        assert http.get(svc.url + "/robots/robot_a/keyframes").status_code == 200
+    finally:
+        svc.stop()
+    again = Service("place-db", tmp_path / "db").start()  # stopped: the folder is free again
+    try:
+        assert http.get(again.url + "/robots/robot_a/keyframes").status_code == 200
+    finally:
+        again.stop()
+
+
 @pytest.mark.parametrize("damage", ["delete", "truncate"])
 def test_a_lost_write_ahead_log_after_a_crash_is_reported(tmp_path, sun3d_frames, damage):
     """A truncated or deleted WAL silently lost acknowledged keyframes, with no log line."""
