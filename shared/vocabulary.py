@@ -116,10 +116,21 @@ class Vocabulary:
         return ids.astype(np.uint32), np.minimum(counts, 65535).astype(np.uint16)
 
     def save(self, path: str | Path) -> None:
-        """Write the versioned, pickle-free `.npz` file."""
+        """Write the versioned, pickle-free `.npz` file at exactly `path` (numpy would add
+        `.npz` to a name without it, and `vocab train -o my.voc` said `my.voc` while writing
+        `my.voc.npz`), whole or not at all."""
         p = self.gist_params
+        path = Path(path)
+        if path.is_dir():
+            raise IsADirectoryError(21, "Is a folder, not a vocabulary file", str(path))
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as f:
+            self._write(f, p)
+        tmp.replace(path)
+
+    def _write(self, f, p: GistParams) -> None:
         np.savez_compressed(
-            path,
+            f,
             format=np.array(FORMAT),
             format_version=np.array(FORMAT_VERSION),
             gist_centroids=self.gist_centroids,

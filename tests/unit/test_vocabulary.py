@@ -25,6 +25,18 @@ def test_round_trip_is_exact(tmp_path):
     assert (w.gist_params, w.source, w.vocab_id) == (v.gist_params, "test", v.vocab_id)
 
 
+def test_a_vocabulary_is_written_at_the_name_given(tmp_path):
+    """`vocab train -o my.voc` printed `-> my.voc` and wrote `my.voc.npz` (numpy's suffix);
+    a later `--vocab my.voc` then read whatever else had that name."""
+    rng = np.random.default_rng(3)
+    v = Vocabulary(rng.random((4, 384)), rng.random((20, 128)) * 255, GistParams(), "test")
+    v.save(tmp_path / "my.voc")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["my.voc"]
+    assert Vocabulary.load(tmp_path / "my.voc").vocab_id == v.vocab_id
+    with pytest.raises(IsADirectoryError):
+        v.save(tmp_path)
+
+
 def test_bad_files_are_rejected(tmp_path):
     with pytest.raises(BadVocabulary, match="Cannot read"):
         load_vocabulary(tmp_path / "missing.npz")
