@@ -32,9 +32,15 @@ def unreadable(exc: Exception) -> BadInput | None:
     """One line naming the setting a pydantic ValidationError could not read (its variable's
     path after the prefix, what is wrong, what was given), or None for another error."""
     from pydantic import ValidationError
+    from pydantic_settings import SettingsError
 
+    if isinstance(exc, SettingsError):  # a variable pydantic-settings cannot parse (JSON)
+        cause = f": {exc.__cause__}" if exc.__cause__ else ""
+        return BadInput(f"setting: {exc}{cause}")
     if not isinstance(exc, ValidationError):
         return None
     err = exc.errors()[0]
     where = "__".join(str(p) for p in err["loc"]).upper()
-    return BadInput(f"setting {where}: {err['msg']} (got {err.get('input')!r})")
+    secret = any(w in where for w in ("TOKEN", "DATABASE"))  # a password never in a log
+    given = "" if secret else f" (got {err.get('input')!r})"
+    return BadInput(f"setting {where}: {err['msg']}{given}")

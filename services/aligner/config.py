@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pydantic import SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.align.types import AlignParams
@@ -22,20 +22,29 @@ class Settings(BaseSettings):
     # access control: none configured = open (logged at start-up)
     operator_token: SecretStr | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
-    max_body_bytes: int = 128 * 1024 * 1024  # enforced while streaming, chunked or not
+    max_body_bytes: int = Field(128 * 1024 * 1024, ge=1)  # enforced while streaming
     # a request's headers within this many seconds, else the connection is closed (slowloris)
     header_timeout_s: float = HEADER_TIMEOUT_S
     # decoded colour + depth pixels of all requests being aligned at once (about 8 bytes
     # each while aligned): bounds memory whatever the concurrency; more waits, then 503
-    max_pixels_in_flight: int = 32 * 1024 * 1024
-    max_requests_in_flight: int = 2  # /align requests past their body; more wait, then 503
-    max_views: int = 32  # per robot in one request
-    max_pairs: int = 512
-    max_image_pixels: int = 4096 * 4096
-    cloud_cache: int = 8  # merged clouds kept for GET /clouds/{id}
+    max_pixels_in_flight: int = Field(32 * 1024 * 1024, ge=1)
+    # /align requests past their body; more wait, then 503
+    max_requests_in_flight: int = Field(2, ge=1)
+    max_views: int = Field(32, ge=1)  # per robot in one request
+    max_pairs: int = Field(512, ge=1)
+    max_image_pixels: int = Field(4096 * 4096, ge=1)
+    cloud_cache: int = Field(8, ge=1)  # merged clouds kept for GET /clouds/{id}
     # the alignment's parameters, nested: FLEETMAP_ALIGNER_ALIGN__MIN_INLIERS=20
     align: AlignParams = AlignParams()
 
     def __init__(self, **values):
         refuse_flat_names("FLEETMAP_ALIGNER_", AlignParams, "ALIGN")
         super().__init__(**values)
+
+    @field_validator("operator_token")
+    @classmethod
+    def _not_empty(cls, v: SecretStr | None) -> SecretStr | None:
+        """An empty token turns access control on with a token no caller can send."""
+        if v is not None and not v.get_secret_value():
+            raise ValueError("is empty: set a token, or unset the variable for open access")
+        return v

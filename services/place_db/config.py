@@ -86,6 +86,31 @@ class Settings(BaseSettings):
             raise ValueError("must be a postgresql://USER[:PASS]@HOST:PORT/DB URL")
         return v
 
+    @field_validator("aligner")
+    @classmethod
+    def _aligner_url(cls, v: str | None) -> str | None:
+        """An aligner that is not an http(s) URL was accepted at start and failed on every
+        pair once robots streamed (an outside tester's review)."""
+        if v is not None and not v.startswith(("http://", "https://")):
+            raise ValueError("must be an http:// or https:// URL")
+        return v
+
+    @field_validator("operator_token", "aligner_token")
+    @classmethod
+    def _not_empty(cls, v: SecretStr | None) -> SecretStr | None:
+        """An empty operator token turned access control on with a token no caller can
+        send: every operator route answered 401 (an outside tester's review)."""
+        if v is not None and not v.get_secret_value():
+            raise ValueError("is empty: set a token, or unset the variable for open access")
+        return v
+
+    @field_validator("data_dir")
+    @classmethod
+    def _a_folder(cls, v: Path) -> Path:
+        if v.exists() and not v.is_dir():
+            raise ValueError("is not a folder")
+        return v
+
     @property
     def db_path(self) -> Path:
         return self.data_dir / self.db_file

@@ -136,6 +136,33 @@ def test_aligner_refuses_a_look_it_cannot_run(monkeypatch, name, value, named):
         AlignerSettings()
 
 
+@pytest.mark.parametrize(
+    "settings, variable, value, named",
+    [
+        (Settings, "FLEETMAP_PLACE_DB_OPERATOR_TOKEN", "", "OPERATOR_TOKEN: Value error, is empty"),
+        (AlignerSettings, "FLEETMAP_ALIGNER_OPERATOR_TOKEN", "", "OPERATOR_TOKEN: Value error"),
+        (Settings, "FLEETMAP_PLACE_DB_ALIGNER", "notaurl", "ALIGNER: Value error, must be an http"),
+        (Settings, "FLEETMAP_PLACE_DB_DATA_DIR", "/etc/hostname", "DATA_DIR: Value error, is not"),
+        (Settings, "FLEETMAP_PLACE_DB_ROBOT_TOKENS", '{"a": "x"', 'parsing value for field "robot'),
+        (AlignerSettings, "FLEETMAP_ALIGNER_MAX_PAIRS", "-1", "MAX_PAIRS: Input should be greater"),
+        (AlignerSettings, "FLEETMAP_ALIGNER_CLOUD_CACHE", "0", "CLOUD_CACHE: Input should be"),
+    ],
+)
+def test_a_setting_that_cannot_work_is_one_line_at_start(
+    monkeypatch, settings, variable, value, named
+):
+    """Each was accepted, or a traceback, before an outside tester's review (session 51): an
+    empty token locked every operator route, an aligner that is not a URL failed on every
+    pair once robots streamed, a file as the data folder, a JSON typo, a negative limit."""
+    from fleetmap.errors import BadInput
+    from fleetmap.services.commands import _settings
+
+    monkeypatch.setenv(variable, value)
+    with pytest.raises(BadInput, match=named) as caught:
+        _settings(settings)
+    assert 'x"' not in str(caught.value)  # a token's value is never in the line
+
+
 @pytest.mark.parametrize("service", ["place-db", "aligner"])
 def test_config_refuses_other_methods_and_ignores_query_strings(service, tuned, aligner):
     client = tuned[0] if service == "place-db" else aligner[0]
