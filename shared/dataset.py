@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fleetmap.camera import TUM_FR1, Intrinsics, no_reading_as_0
+from fleetmap.camera import TUM_FR1, Intrinsics, no_reading_as_0, truncated_jpeg
 from fleetmap.errors import BadRobotData
 from fleetmap.geometry import pose_from_tum
 
@@ -108,7 +108,8 @@ def working_intrinsics(native: Intrinsics) -> Intrinsics | None:
 
 
 def read_list(path: Path) -> list[tuple[float, list[str]]]:
-    """Parse a TUM text list: '#' comments and non-numeric lines skipped, sorted by time."""
+    """Parse a TUM text list: '#' comments and blank lines skipped, sorted by time; a line
+    that does not start with a timestamp is BadRobotData naming it."""
     if not path.is_file():
         raise BadRobotData(f"Missing file: {path}")
     rows = []
@@ -118,9 +119,11 @@ def read_list(path: Path) -> list[tuple[float, list[str]]]:
             continue
         try:
             stamp = float(parts[0])
-        except ValueError:
-            log.debug("%s:%d: skipping non-numeric line", path, n)
-            continue
+        except ValueError:  # skipped silently before: a damaged list lost frames unsaid
+            raise BadRobotData(
+                f"{path}:{n}: expected a timestamp first, got {line.strip()[:60]!r} "
+                "(comments start with '#')"
+            ) from None
         if not np.isfinite(stamp):
             raise BadRobotData(f"{path}:{n}: non-finite timestamp")
         rows.append((stamp, parts[1:]))
@@ -160,6 +163,8 @@ def _read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
             raise BadRobotData(f"{path}: expected 'timestamp tx ty tz qx qy qz qw', got {vals}")
         try:
             v = np.array(vals[:7], dtype=np.float64)
+            if not np.isfinite(v).all():
+                raise ValueError(f"non-finite values {vals[:7]}")
             poses.append(pose_from_tum(v[:3], v[3:7]))
         except ValueError as exc:
             raise BadRobotData(f"{path}: bad pose at t={stamp}: {exc}") from exc
@@ -198,9 +203,10 @@ def read_recording(
     if not root.is_dir():
         raise BadRobotData(f"Robot folder not found: {root}")
     robot_id = robot_id or root.resolve().name
+    cam = root / "camera.json"
+    declared = intrinsics is None and cam.is_file()  # its width and height must be the images'
     if intrinsics is None:
-        cam = root / "camera.json"
-        intrinsics = Intrinsics.from_json_file(cam) if cam.is_file() else TUM_FR1
+        intrinsics = Intrinsics.from_json_file(cam) if declared else TUM_FR1
     rgb = read_list(root / "rgb.txt")
     if not rgb:
         raise BadRobotData(f"{root / 'rgb.txt'} lists no frames")
@@ -219,8 +225,13 @@ def read_recording(
             f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
         )
     log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
-    h, w = load_rgb(frames[0].rgb_path).shape[:2]  # the size the images have, whatever
-    native = dataclasses.replace(intrinsics, width=w, height=h)  # camera.json says (or not)
+    h, w = load_rgb(frames[0].rgb_path).shape[:2]  # the size the images have
+    if declared and (w, h) != (intrinsics.width, intrinsics.height):
+        raise BadRobotData(  # its focal length and centre would be another image's
+            f"{cam} is for {intrinsics.width}x{intrinsics.height} images, but "
+            f"{frames[0].rgb_path} is {w}x{h}"
+        )
+    native = dataclasses.replace(intrinsics, width=w, height=h)
     work = working_intrinsics(native)
     if work is None:
         return Recording(robot_id=robot_id, root=root, intrinsics=native, frames=frames)
@@ -260,6 +271,11 @@ def load_rgb(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise BadRobotData(f"Cannot read colour image {path}")
+    with open(path, "rb") as f:
+        head = f.read(2)
+        f.seek(max(0, Path(path).stat().st_size - 64))
+        if truncated_jpeg(head, f.read()):
+            raise BadRobotData(f"Colour image {path} is cut short (a JPEG without its end)")
     return img
 
 

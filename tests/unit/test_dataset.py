@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fleetmap.camera import TUM_FR1
-from fleetmap.dataset import associate, load_depth, parse_robot_arg, read_recording
+from fleetmap.dataset import associate, load_depth, load_rgb, parse_robot_arg, read_recording
 from fleetmap.errors import BadRobotData
 from tests.helpers import resized_recording
 
@@ -56,6 +56,46 @@ def test_missing_folder_and_bad_pose_are_clear(tum_robot, tmp_path):
     (tum_robot / "groundtruth.txt").write_text("1305031102.2159 1 2 3 0 0 0\n")
     with pytest.raises(BadRobotData, match="expected 'timestamp tx ty tz qx qy qz qw'"):
         read_recording(tum_robot)
+
+
+@pytest.mark.parametrize(
+    "file, line, named",
+    [
+        ("groundtruth.txt", "hello world foo", "groundtruth.txt:4: expected a timestamp first"),
+        ("rgb.txt", "rgb/x.png 1305031102.3", "rgb.txt:4: expected a timestamp first"),
+        ("groundtruth.txt", "1305031102.2758 nan 0 0 0 0 0 1", "groundtruth.txt: bad pose"),
+    ],
+)
+def test_a_damaged_list_line_is_named_not_skipped(tum_robot, file, line, named):
+    """A line that was not a timestamp was skipped silently (frames lost unsaid), a NaN
+    pose refused later without the file (an outside tester's review, session 51)."""
+    with open(tum_robot / file, "a") as f:
+        f.write(line + "\n")
+    with pytest.raises(BadRobotData, match=named):
+        read_recording(tum_robot)
+
+
+def test_a_camera_file_for_other_images_and_a_jpeg_cut_short_are_refused(tum_robot):
+    """camera.json for 320x240 over 640x480 images was read at the images' size (its focal
+    length and centre another image's); a truncated JPEG decoded with grey where the data
+    stopped (the same review)."""
+    import json
+
+    import cv2
+
+    cam = {"fx": 258.65, "fy": 258.25, "cx": 159.3, "cy": 127.65, "depth_scale": 5000.0}
+    (tum_robot / "camera.json").write_text(json.dumps(cam | {"width": 320, "height": 240}))
+    with pytest.raises(BadRobotData, match="is for 320x240 images, but .* is 640x480"):
+        read_recording(tum_robot)
+    (tum_robot / "camera.json").unlink()
+    rec = read_recording(tum_robot)
+    jpg = rec.frames[0].rgb_path.with_suffix(".jpg")
+    data = cv2.imencode(".jpg", cv2.imread(str(rec.frames[0].rgb_path)))[1].tobytes()
+    jpg.write_bytes(data)
+    assert load_rgb(jpg).shape == (480, 640, 3)  # whole: read
+    jpg.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BadRobotData, match="cut short"):
+        load_rgb(jpg)
 
 
 def test_list_entries_cannot_escape_the_folder(tum_robot):
