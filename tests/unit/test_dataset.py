@@ -101,7 +101,7 @@ def test_a_camera_file_for_other_images_and_a_jpeg_cut_short_are_refused(tum_rob
 
     assert decode_image(data, "rgb", False).shape == (480, 640, 3)  # a view over HTTP
     with pytest.raises(BadInput, match="rgb: a JPEG cut short"):
-        decode_image(data[: len(data) // 2], "rgb", False)
+        decode_image(data[:-40], "rgb", False)  # its last bytes lost
 
 
 def test_list_entries_cannot_escape_the_folder(tum_robot):
