@@ -177,7 +177,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
             overrides["aligner"] = args.aligner
         settings = _settings(Settings, **overrides)
         if settings.database is None:
-            check_database_file(settings.db_path)  # a damaged file: one line, exit 1
+            settings.data_dir.mkdir(parents=True, exist_ok=True)  # cannot: one line, exit 1
+            check_database_file(settings.db_path)  # damaged, or in use: one line, exit 1
         else:
             from fleetmap.place.postgres_schema import check_reachable
 

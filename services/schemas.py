@@ -7,7 +7,15 @@ import typing
 from typing import Annotated
 from urllib.parse import parse_qsl, urlencode, urlsplit
 
-from pydantic import AfterValidator, BaseModel, Field, SecretBytes, SecretStr, create_model
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    Field,
+    SecretBytes,
+    SecretStr,
+    Strict,
+    create_model,
+)
 
 
 def _four_by_four(v: list[list[float]]) -> list[list[float]]:
@@ -16,8 +24,9 @@ def _four_by_four(v: list[list[float]]) -> list[list[float]]:
     return v
 
 
-Matrix4 = Annotated[list[list[float]], AfterValidator(_four_by_four)]
-"""A 4x4 matrix in a JSON body, rows of numbers (pose or rigid transform)."""
+Matrix4 = Annotated[list[list[Annotated[float, Strict()]]], AfterValidator(_four_by_four)]
+"""A 4x4 matrix in a JSON body, rows of numbers (pose or rigid transform): numbers only
+(`true` and "1" were taken for 1.0: an outside tester's review)."""
 
 #: A setting whose name holds one of these is never shown, whatever its type.
 SECRET_WORDS = ("token", "password", "secret", "api_key", "credential")

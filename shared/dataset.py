@@ -201,6 +201,8 @@ def read_recording(
         robot_id = robot_id or root.resolve().stem
         root = cached_tum(root, topics or BagTopics())
     if not root.is_dir():
+        if root.exists():  # a file: not "not found"
+            raise BadRobotData(f"{root} is a file, not a robot folder nor a ROS bag")
         raise BadRobotData(f"Robot folder not found: {root}")
     robot_id = robot_id or root.resolve().name
     cam = root / "camera.json"

@@ -67,8 +67,9 @@ def image_size(data: bytes, name: str) -> tuple[int, int]:
                 size = im.size
     except Image.DecompressionBombError as exc:
         raise PayloadTooLarge(f"{name}: {exc}") from exc
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise BadInput(f"{name}: not an image OpenCV or Pillow can read ({exc})") from exc
+    except (OSError, ValueError, SyntaxError) as exc:  # Pillow's message names the buffer
+        why = str(exc).split(" <_io.BytesIO")[0]  # object at 0x..: an address, not a reason
+        raise BadInput(f"{name}: not an image OpenCV or Pillow can read ({why})") from exc
     if media_type(data) == "image/jpeg":
         check_jpeg_scans(data, name, size[0] * size[1])
     return size

@@ -37,7 +37,7 @@ class IntrinsicsIn(BaseModel):
 
 
 class ViewMeta(BaseModel):
-    stamp: float = 0.0
+    stamp: float = Field(0.0, allow_inf_nan=False)
     T_map_cam: Matrix4 = Field(description="4x4 camera-to-map pose")
     intrinsics: IntrinsicsIn
 

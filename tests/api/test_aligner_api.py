@@ -152,6 +152,12 @@ def test_hostile_align_requests_answer_4xx_before_spending_memory(client, tum_tw
     r = client.post("/align", **req)
     assert r.status_code == 422 and "bottom row" in r.json()["detail"]
 
+    meta = json.loads(_request(pairs)["data"]["meta"])
+    meta["views_a"][0]["stamp"] = float("nan")  # 200 before (an outside tester's review)
+    req["data"]["meta"] = json.dumps(meta)
+    r = client.post("/align", **req)
+    assert r.status_code == 422 and "stamp" in r.json()["detail"], r.text
+
 
 def test_chunked_body_is_cut_off_at_the_limit(tum_two_robots):
     """The limit held for a declared Content-Length only; chunked, 50 MB went through."""

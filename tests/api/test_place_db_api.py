@@ -146,6 +146,9 @@ def test_links_validate_and_add_co_visible_pairs(client, sun3d_frames, sun3d):
         ({"transform": (2 * np.eye(4)).tolist()}, 422, "bottom row"),
         ({"transform": np.diag([2.0, 2.0, 2.0, 1.0]).tolist()}, 422, "rigid"),
         ({"transform": [[float("nan")] * 4] * 4}, 422, "finite"),
+        # taken for 1.0 before (an outside tester's review, session 51)
+        ({"transform": [[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, 422, "number"),
+        ({"transform": [["1", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, 422, "number"),
     ]
     for body, status, msg in bad:
         content = json.dumps(body)  # allows NaN, as a careless client would send it

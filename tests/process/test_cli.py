@@ -40,6 +40,8 @@ def test_version_and_help():
     ("args", "code", "message"),
     [
         (["merge", "nowhere", "-o", "x"], 1, "Robot folder not found"),
+        (["merge", "/etc/hostname", "-o", "x"], 1, "is a file, not a robot folder"),
+        (["serve", "place-db", "--data-dir", "/proc/x/y"], 1, "/proc/x"),  # cannot be made
         (["merge", str(EXAMPLE / "alpha"), "-o", "/etc/hostname"], 1, "is not a folder"),
         (["ingest", str(EXAMPLE / "alpha")], 2, "--place-db"),  # no URL, no $FLEETMAP_..._URL
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--bogus"], 2, "unrecognized arguments"),
