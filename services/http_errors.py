@@ -4,10 +4,13 @@ schema each route's OpenAPI entry names."""
 from __future__ import annotations
 
 import logging
+from http import HTTPStatus
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from fleetmap.errors import FleetmapError
@@ -50,6 +53,25 @@ def install_error_handlers(app: FastAPI) -> None:
         if getattr(exc, "retry_after", None) is not None:
             headers["retry-after"] = str(max(1, round(exc.retry_after)))
         return JSONResponse(status_code=status_of(exc), content=error_body(exc), headers=headers)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _framework_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        """The framework's own refusals (a body it cannot parse, a method not allowed) in the
+        same body as every other error: `error` was missing (an outside tester's review)."""
+        name = HTTPStatus(exc.status_code).phrase.replace(" ", "").replace("-", "")
+        body = {"detail": str(exc.detail), "error": name}
+        return JSONResponse(status_code=exc.status_code, content=body, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        """A query, path or JSON field that does not validate: 422, one readable line per
+        field in `detail` (FastAPI's list of dicts, without `error`, before)."""
+        lines = [
+            f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', 'invalid')}"
+            for e in exc.errors()
+        ]
+        body = {"detail": "; ".join(lines) or "invalid request", "error": "ValidationError"}
+        return JSONResponse(status_code=422, content=body)
 
     @app.exception_handler(ClientDisconnect)
     async def _gone(request: Request, exc: ClientDisconnect) -> Response:

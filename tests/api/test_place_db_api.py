@@ -192,3 +192,23 @@ def test_deferred_overlaps_do_not_follow_the_order_of_arrival(sun3d_frames, tmp_
             assert ov["pending"] == 0
             found.append(sorted((p["stamp_a"], p["stamp_b"], p["inliers"]) for p in ov["overlaps"]))
     assert found[0] and found[0] == found[1]
+
+
+def test_the_frameworks_refusals_carry_the_error_body(client):
+    """A body FastAPI cannot parse, a query that does not validate, a method not allowed:
+    `{"detail": str, "error": name}` like every other error (a list without `error`
+    before: an outside tester's review, session 51)."""
+    bad_json = client.put(
+        "/links/a/b", content=b"{not json", headers={"content-type": "application/json"}
+    )
+    bad_query = client.get("/overlaps", params={"robot_a": "a", "robot_b": "b", "wait": "x"})
+    wrong_method = client.patch("/links/a/b")
+    for r, status, error in (
+        (bad_json, 422, "ValidationError"),
+        (bad_query, 422, "ValidationError"),
+        (wrong_method, 405, "MethodNotAllowed"),
+    ):
+        body = r.json()
+        assert r.status_code == status and body["error"] == error, r.text
+        assert isinstance(body["detail"], str) and body["detail"]
+    assert "wait" in bad_query.json()["detail"]
