@@ -38,6 +38,10 @@ class UnknownKeyframe(FleetmapError, KeyError):
         return str(self.args[0]) if self.args else "unknown keyframe"
 
 
+class UnknownCloud(UnknownKeyframe):
+    """A merged cloud id the aligner does not hold (never made, or gone from its cache)."""
+
+
 class NotSolved(FleetmapError, LookupError):
     """Something the live map has not computed (yet) for its current placement."""
 

@@ -14,7 +14,7 @@ from fleetmap.align import merged_cloud, method
 from fleetmap.align.types import AlignParams
 from fleetmap.camera import Intrinsics
 from fleetmap.correspondences import RGBDView
-from fleetmap.errors import BadInput, PayloadTooLarge, UnknownKeyframe
+from fleetmap.errors import BadInput, PayloadTooLarge, UnknownCloud
 from fleetmap.services.aligner import schemas as s
 from fleetmap.services.aligner.deps import AlignerSettings, Budget, Clouds
 from fleetmap.services.auth import require_token
@@ -198,7 +198,7 @@ def cloud(cloud_id: str, clouds: Clouds) -> Response:
     """The merged cloud of an alignment as a binary PLY."""
     item = clouds.get(cloud_id)
     if item is None:
-        raise UnknownKeyframe(f"Unknown cloud {cloud_id!r}")
+        raise UnknownCloud(f"Unknown cloud {cloud_id!r}")
     return Response(
         item[0],
         media_type="application/octet-stream",

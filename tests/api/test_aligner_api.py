@@ -104,7 +104,8 @@ def test_inline_pair_layout_still_accepted(client, tum_two_robots):
     assert r.status_code == 200, r.text
     dt, dr = transform_error(np.array(r.json()["transform"]), T_true)
     assert dt < 0.05 and dr < 2.0
-    assert client.get("/clouds/nope").status_code == 404
+    gone = client.get("/clouds/nope")
+    assert gone.status_code == 404 and gone.json()["error"] == "UnknownCloud"  # not a keyframe
 
 
 def test_oversized_body_is_refused(tum_two_robots):
