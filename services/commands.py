@@ -97,6 +97,7 @@ def _merge_params(args: argparse.Namespace):
 def cmd_extract(args: argparse.Namespace) -> int:
     """Write one encoded frame structure per keyframe of a robot folder."""
     from fleetmap.dataset import parse_robot_arg, read_recording
+    from fleetmap.errors import BadInput
     from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
     from fleetmap.frame import encode
     from fleetmap.vocabulary import load_vocabulary
@@ -104,16 +105,26 @@ def cmd_extract(args: argparse.Namespace) -> int:
     name, robot_dir = parse_robot_arg(args.robot)
     rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
     extractor = FrameExtractor(load_vocabulary(args.vocab))
+    if not args.output.strip():  # Path("") is the current folder: not what was meant
+        raise BadInput("-o/--output: an empty folder name")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     n = len(keyframe_indices(rec, _policy(args)))
-    total = 0
+    total, written = 0, []
     frames = extract_recording(rec, extractor, _policy(args))
     bar = tqdm(frames, total=n, desc=f"extract {rec.robot_id}", unit="kf", disable=args.quiet)
-    for frame in bar:
-        data = encode(frame)
-        (out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf").write_bytes(data)
-        total += len(data)
+    try:
+        for frame in bar:
+            data = encode(frame)
+            path = out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf"
+            if not path.exists():  # a file of an earlier run stays
+                written.append(path)
+            path.write_bytes(data)
+            total += len(data)
+    except BaseException:  # a frame that cannot be read: no half a robot left behind
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
     print(
         f"{n} keyframes of {len(rec)} frames -> {out} "
         f"({total / max(n, 1) / 1024:.1f} KiB per frame)"

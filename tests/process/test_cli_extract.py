@@ -49,3 +49,17 @@ def test_extract_applies_intrinsics_overrides(tum_robot, tmp_path):
     )
     f = decode(next(out.glob("*.fmf")).read_bytes())
     assert f.intrinsics.fx == 525.0 and f.intrinsics.cx == 318.6
+
+
+def test_a_failed_extract_leaves_no_half_robot_and_an_empty_output_is_refused(
+    tum_robot, tmp_path, capsys
+):
+    """A frame that cannot be read ended the run with the frames before it left in the
+    output folder; `-o ''` wrote into the current folder (an outside tester's review)."""
+    (tum_robot / "rgb").joinpath(sorted((tum_robot / "rgb").iterdir())[-1].name).write_bytes(b"x")
+    out = tmp_path / "frames"
+    assert main(["extract", str(tum_robot), "-o", str(out), "--kf-interval", "0.01"]) == 1
+    assert "Cannot read colour image" in capsys.readouterr().err
+    assert list(out.glob("*.fmf")) == []
+    assert main(["extract", str(tum_robot), "-o", ""]) == 1
+    assert "empty folder name" in capsys.readouterr().err
