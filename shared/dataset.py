@@ -270,6 +270,8 @@ def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> lis
 
 def load_rgb(path: Path) -> np.ndarray:
     """Colour image as uint8 (H, W, 3) BGR; raises BadRobotData if missing or unreadable."""
+    if not Path(path).is_file():  # before OpenCV, which prints its own warning
+        raise BadRobotData(f"Cannot read colour image {path}: no such file")
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise BadRobotData(f"Cannot read colour image {path}")
@@ -284,6 +286,8 @@ def load_rgb(path: Path) -> np.ndarray:
 def load_depth(path: Path) -> np.ndarray:
     """Depth image as uint16 (H, W), 0 where there is no reading (`camera.no_reading_as_0`);
     raises BadRobotData if missing, unreadable or not 16-bit."""
+    if not Path(path).is_file():  # before OpenCV, which prints its own warning
+        raise BadRobotData(f"Cannot read depth image {path}: no such file")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise BadRobotData(f"Cannot read depth image {path}")
