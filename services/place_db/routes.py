@@ -72,10 +72,11 @@ async def healthz(
     a thread of its own: busy map routes never make it wait)."""
     loop = asyncio.get_running_loop()
     pool = request.app.state.health_pool
-    return await loop.run_in_executor(pool, _health, db, settings, caller)
+    host = (request.scope.get("server") or (None,))[0]  # the socket's address, not Host:
+    return await loop.run_in_executor(pool, _health, db, settings, caller, host)
 
 
-def _health(db: PlaceDB, settings, caller: str | None) -> s.Health:
+def _health(db: PlaceDB, settings, caller: str | None, host: str | None = None) -> s.Health:
     ok = db.ping()
     if caller is None:  # anonymous on a secured service: liveness only
         return s.Health(status="ok" if ok else "degraded")
@@ -93,7 +94,7 @@ def _health(db: PlaceDB, settings, caller: str | None) -> s.Health:
         database_ok=ok,
         index_clusters=st["clusters"],
         index_cluster_max=st["cluster_max"],
-        access_control=auth_summary(settings),
+        access_control=auth_summary(settings, host),  # as the start line says it
     )
 
 

@@ -325,3 +325,16 @@ def test_json_logs_carry_request_fields_and_a_start_line(tmp_path):
     req = [x for x in lines if x.get("request_id") == "probe-1"]
     assert req and req[0]["method"] == "GET" and req[0]["path"] == "/healthz"
     assert req[0]["status"] == 200 and req[0]["ms"] >= 0
+
+
+def test_healthz_tells_the_access_as_the_start_line_does(tmp_path):
+    """An open service on loopback started with "this machine only" and then told every
+    /healthz caller "anyone on the network may read and write" (an outside tester's review)."""
+    from tests.servers import Service, http
+
+    svc = Service("place-db", tmp_path / "db").start()
+    try:
+        h = http.get(svc.url + "/healthz").json()
+        assert "this machine only" in h["access_control"], h
+    finally:
+        svc.stop()
