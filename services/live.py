@@ -140,9 +140,10 @@ def cmd_map(args: argparse.Namespace) -> int:
         pose_graph = client.map_pose_graph()
     files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel, served, pose_graph)
     write_live_outputs(out, m, files, args.place_db, time.perf_counter() - t0)
+    where = f"in {m['reference']}'s frame" if m["reference"] else "placed (none yet)"
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "
-        f"in {m['reference']}'s frame; results: {out / 'report.json'}, {out / 'merged.ply'}, "
+        f"{where}; results: {out / 'report.json'}, {out / 'merged.ply'}, "
         f"{out / 'overview.png'}, {out / 'fleet.mcap'} (Foxglove)"
     )
     for u in m["unmerged"]:

@@ -112,13 +112,16 @@ def write_tum(path: Path, rows, ref: str) -> None:
 def write_g2o(path: Path, ids: list[str], placed: dict, edges: dict) -> None:
     """The robots' pose graph in g2o's SE3 format: one vertex per placed robot (its map
     frame in the reference's), one edge per gated pairwise fit, information scaled by the
-    fit's inliers. The reference's vertex is fixed."""
+    fit's inliers. The reference's vertex is fixed (where there is one: a live map of no
+    robot, or none placed, is a graph of no vertex; `FIX 0` of no vertex 0 and an
+    IndexError on no robot before: an outside tester's review)."""
     idx = {r: k for k, r in enumerate(ids)}
     lines = [f"# fleetmap pose graph: vertex k = robot {', '.join(ids)}"]
     for r in ids:
         if r in placed:
             lines.append(f"VERTEX_SE3:QUAT {idx[r]} " + _g2o_pose(placed[r]))
-    lines.append(f"FIX {idx[ids[0]]}")
+    if ids and ids[0] in placed:  # none placed (an empty or unaligned live map): no vertex
+        lines.append(f"FIX {idx[ids[0]]}")
     for (a, b), e in edges.items():
         info = _g2o_information(np.eye(6) * max(float(e["inliers"]), 1.0))
         upper = " ".join(f"{info[i, j]:g}" for i in range(6) for j in range(i, 6))
