@@ -34,8 +34,14 @@ def cmd_convert(args: argparse.Namespace) -> int:
         from fleetmap.errors import BadInput
 
         raise BadInput(f"{out} exists: give a new folder")
-    bag_to_tum(src, out, _topics(args))
-    rec = read_recording(out)
+    try:
+        bag_to_tum(src, out, _topics(args))
+        rec = read_recording(out)
+    except BaseException:  # a failed convert left its folder, which refused the retry
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)
+        raise
     print(f"{len(rec)} RGB-D frames with poses -> {out}")
     return 0
 

@@ -63,7 +63,11 @@ def cached_tum(bag: Path, topics: BagTopics = BagTopics(), cache: Path | None = 
     if not (out / "groundtruth.txt").is_file():
         tmp = out.with_name(out.name + f".tmp{os.getpid()}")
         shutil.rmtree(tmp, ignore_errors=True)
-        bag_to_tum(bag, tmp, topics)
+        try:
+            bag_to_tum(bag, tmp, topics)
+        except BaseException:  # no half-converted bag left in the cache
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         shutil.rmtree(out, ignore_errors=True)
         tmp.rename(out)  # whole or not at all
     return out
@@ -84,6 +88,10 @@ def _pick(conns, types: tuple[str, ...], given: str | None, what: str, flag: str
         found = [c for c in conns if c.topic == given]
         if not found:
             raise BadRobotData(f"no topic {given!r} in the bag ({flag})")
+        if found[0].msgtype not in types:  # read as another type: an AttributeError before
+            raise BadRobotData(
+                f"topic {given!r} is {found[0].msgtype}: {flag} needs {' or '.join(types)}"
+            )
         return found[0]
     found = [c for c in conns if c.msgtype in types]
     if len(found) != 1:
@@ -103,8 +111,11 @@ def _images(reader, conns, topics: BagTopics):
     images = [c for c in conns if c.msgtype == IMAGE]
     rgb, depth = [], []
     for c in images:
-        for conn, _, raw in reader.messages(connections=[c]):
-            enc = reader.deserialize(raw, conn.msgtype).encoding
+        for conn, _, raw in _messages(reader, [c], "the bag"):
+            try:
+                enc = reader.deserialize(raw, conn.msgtype).encoding
+            except Exception as exc:  # a damaged first message
+                raise BadRobotData(f"first message on {c.topic}: {exc}") from exc
             (depth if enc in DEPTH_ENCODINGS else rgb).append(c)
             break
     if topics.rgb:
@@ -126,7 +137,12 @@ def _stamp(msg) -> float:
 def _image(msg, depth: bool) -> np.ndarray:
     h, w, enc = msg.height, msg.width, msg.encoding
     data = np.asarray(msg.data, dtype=np.uint8)
-    rows = data.reshape(h, msg.step)
+    if h < 1 or w < 1 or msg.step < w or data.size < h * msg.step:
+        raise BadRobotData(
+            f"an image of {w}x{h} pixels, step {msg.step}, holds {data.size} bytes "
+            f"(needs {h * msg.step})"
+        )
+    rows = data[: h * msg.step].reshape(h, msg.step)
     if depth:
         if enc in ("16UC1", "mono16"):
             img = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2")
@@ -158,6 +174,19 @@ def _pose(msg) -> np.ndarray:
     return pose_from_tum(t, q)
 
 
+def _messages(reader, connections, bag: Path):
+    """The reader's messages; a storage that fails mid-read (a cut blob) as BadRobotData."""
+    it = reader.messages(connections=connections)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # rosbags' own error classes per format
+            raise BadRobotData(f"{bag}: cannot read the bag's messages: {exc}") from exc
+        yield item
+
+
 def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
     """Write the bag's colour, depth, intrinsics and poses as a TUM folder `out`."""
     bag = Path(bag)
@@ -180,8 +209,12 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
         lists = {"rgb": [], "depth": [], "gt": []}
         camera = None
         wanted = [rgb_c, depth_c, info_c, pose_c]
-        for conn, _, raw in reader.messages(connections=wanted):
-            msg = reader.deserialize(raw, conn.msgtype)
+        seen: dict[str, set] = {"rgb": set(), "depth": set(), "gt": set()}
+        for n, (conn, _, raw) in enumerate(_messages(reader, wanted, bag)):
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:  # a damaged message in a readable bag
+                raise BadRobotData(f"{bag}: message {n} on {conn.topic}: {exc}") from exc
             if conn.topic == info_c.topic:
                 if camera is None:
                     k = msg.k if hasattr(msg, "k") else msg.K  # ROS 2 and ROS 1 names
@@ -197,13 +230,22 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
                     }
                 continue
             stamp = _stamp(msg)
-            if conn.topic == pose_c.topic:
-                tum = " ".join(f"{v:.9f}" for v in pose_to_tum(_pose(msg)))
-                lists["gt"].append(f"{stamp:.9f} {tum}")
-                continue
-            kind = "depth" if conn.topic == depth_c.topic else "rgb"
-            name = f"{kind}/{stamp:.9f}.png"
-            cv2.imwrite(str(out / name), _image(msg, kind == "depth"))
+            kind = {pose_c.topic: "gt", depth_c.topic: "depth"}.get(conn.topic, "rgb")
+            if f"{stamp:.9f}" in seen[kind]:  # one file a stamp: a repeat would pair wrongly
+                raise BadRobotData(
+                    f"{bag}: two messages on {conn.topic} at header stamp {stamp:.9f}: "
+                    "every message needs its own time (stamps all 0?)"
+                )
+            seen[kind].add(f"{stamp:.9f}")
+            try:
+                if kind == "gt":
+                    tum = " ".join(f"{v:.9f}" for v in pose_to_tum(_pose(msg)))
+                    lists["gt"].append(f"{stamp:.9f} {tum}")
+                    continue
+                name = f"{kind}/{stamp:.9f}.png"
+                cv2.imwrite(str(out / name), _image(msg, kind == "depth"))
+            except (BadRobotData, ValueError, cv2.error) as exc:
+                raise BadRobotData(f"{bag}: message {n} on {conn.topic}: {exc}") from exc
             lists[kind].append(f"{stamp:.9f} {name}")
     finally:
         reader.close()

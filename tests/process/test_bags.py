@@ -22,9 +22,12 @@ def _cache(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
 
 
-def write_bag(robot_dir, bag, ros1: bool = False, depth_m: bool = False, frames=None) -> None:
+def write_bag(
+    robot_dir, bag, ros1: bool = False, depth_m: bool = False, frames=None, zero_stamps=False
+) -> None:
     """A robot folder as a bag: colour (rgb8), depth (16UC1 mm or 32FC1 m), CameraInfo and
-    PoseStamped, each message stamped with its frame's time."""
+    PoseStamped, each message stamped with its frame's time (`zero_stamps`: every header's
+    stamp 0, as a driver without a clock writes them; the bag's record times still differ)."""
     from rosbags.typesys import Stores, get_typestore
 
     rec = read_recording(robot_dir)
@@ -45,6 +48,7 @@ def write_bag(robot_dir, bag, ros1: bool = False, depth_m: bool = False, frames=
         writer, ser = Writer(bag, version=9), ts.serialize_cdr
 
     def header(stamp: float):
+        stamp = 0.0 if zero_stamps else stamp
         sec = int(stamp)
         kw = {"seq": 0} if ros1 else {}
         return Header(**kw, stamp=Time(sec=sec, nanosec=round((stamp - sec) * 1e9)), frame_id="c")
@@ -146,3 +150,24 @@ def test_convert_writes_a_tum_folder(sun3d, tmp_path, capsys):
     assert rec.intrinsics == read_recording(sun3d / "robot_b").intrinsics and len(rec) == 3
     assert main(["convert", str(sun3d / "robot_b"), "-o", str(tmp_path / "x")]) == 1
     assert "not a ROS bag" in capsys.readouterr().err
+
+
+def test_a_convert_that_fails_names_why_and_leaves_nothing(sun3d, tmp_path, capsys):
+    """Each was a traceback or a silent wrong result before (an outside tester's review,
+    session 51): a topic of another type given for the poses (an AttributeError), header
+    stamps all equal (every image written over one file, 'converted' with the wrong
+    poses), and a failed convert's folder left behind, which refused the retry."""
+    from fleetmap.services.cli import main
+
+    bag = tmp_path / "b_bag"
+    write_bag(sun3d / "robot_b", bag, frames=3)
+    out = tmp_path / "tum"
+    assert main(["convert", str(bag), "-o", str(out), "--pose-topic", "/cam/color"]) == 1
+    err = capsys.readouterr().err
+    assert "'/cam/color' is sensor_msgs/msg/Image: --pose-topic needs" in err
+    assert "Traceback" not in err and not out.exists()
+    zero = tmp_path / "z_bag"
+    write_bag(sun3d / "robot_b", zero, frames=3, zero_stamps=True)
+    assert main(["convert", str(zero), "-o", str(out)]) == 1
+    assert "two messages on /cam/" in capsys.readouterr().err and not out.exists()
+    assert main(["convert", str(bag), "-o", str(out)]) == 0  # the retry is not refused
