@@ -24,6 +24,7 @@ def map_document(db) -> dict:
     names = robot_order(db, robots)
     states = load_states(db)
     graph = db.overlap_graph()
+    worker = read_worker(db)
     placed, flagged = m.T_ref, m.flagged  # flagged: copies, or fits that disagree
     counts = {r["robot_id"]: r["keyframes"] for r in robots}
     fleet = []
@@ -46,7 +47,8 @@ def map_document(db) -> dict:
         "unmerged": [
             {
                 "robot": f["robot"],
-                "reason": flagged.get(f["robot"]) or unmerged_reason(f, states, graph, placed),
+                "reason": flagged.get(f["robot"])
+                or unmerged_reason(f, states, graph, placed, worker),
             }
             for f in fleet
             if f["state"] == "unmerged"
@@ -56,12 +58,15 @@ def map_document(db) -> dict:
         "fleet": fleet,
         "pairs": sorted(states.values(), key=lambda s: (s["robot_a"], s["robot_b"])),
         "overlaps": graph,
-        "worker": read_worker(db),
+        "worker": worker,
     } | ({"fleet_graph": solved["summary"]} if solved is not None else {})
 
 
-def unmerged_reason(robot: dict, states: dict, graph: list[dict], placed: dict) -> str:
-    """One line: why this robot is not in the map (yet)."""
+def unmerged_reason(
+    robot: dict, states: dict, graph: list[dict], placed: dict, worker: dict | None = None
+) -> str:
+    """One line: why this robot is not in the map (yet). `worker`: the merge worker's row
+    (`read_worker`; None where none has run: a place database without an aligner)."""
     r = robot["robot"]
     if robot["views"] == 0:
         return "its keyframes were posted without RGB-D views: they can be queried, not aligned"
@@ -84,4 +89,11 @@ def unmerged_reason(robot: dict, states: dict, graph: list[dict], placed: dict) 
             f"alignment with {other} refused on {last['evidence']} verified overlaps: "
             f"{last['reason']}; tried again when more overlaps are found"
         )
+    if worker is None:  # "pending" for ever said nothing (an outside tester's review)
+        return (
+            "overlaps found, alignment pending; no merge worker has reported yet (a place "
+            "database started without --aligner never aligns)"
+        )
+    if worker.get("aligner_error"):
+        return f"overlaps found; the aligner failed, tried again: {worker['aligner_error']}"
     return "overlaps found, alignment pending"

@@ -3,6 +3,7 @@ both backends, with the aligner's real pipeline: a deleted robot leaves nothing 
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -126,3 +127,50 @@ def test_a_robot_flooding_copies_starves_no_pair(settings, vocabulary):
         pairs = {(p["robot_a"], p["robot_b"]) for p in client.get("/map").json()["pairs"]}
         assert pairs == {("alpha", "bravo")}, pairs
         assert len(calls) == 1 and "bravo" in client.get("/map").json()["transforms"]
+
+
+def test_the_map_says_why_pairs_wait_without_an_aligner_or_with_one_down(tmp_path, vocabulary):
+    """ "overlaps found, alignment pending" stood for the whole outage of an aligner killed
+    mid-stream, and for ever on a place database started without one (an outside tester's
+    review, session 51). Now /map says which; an aligner that answers again clears it."""
+    from fleetmap.errors import Unavailable
+
+    app = create_app(Settings(data_dir=tmp_path, max_view_bytes=2_000_000))
+    down = [True]
+
+    def align(pairs):
+        if down[0]:
+            raise Unavailable("Cannot reach http://127.0.0.1:9/align")
+        return real_align([])(pairs)
+
+    with TestClient(app) as client:
+        post_bundled_pair(client, vocabulary)
+        assert client.get("/overlaps", params={"wait": 60}).json()["graph"]
+        why = {u["robot"]: u["reason"] for u in client.get("/map").json()["unmerged"]}
+        assert "no merge worker has reported yet" in why["bravo"], why
+        params = LiveParams(settle_s=3600, failure_backoff_s=0.2, poll_s=0.05)
+        live = LiveMap(app.state.db, align, params)  # the worker as the service runs it
+        live.start()
+        try:
+            why = _reason_when(client, "bravo", "the aligner failed, tried again: ")
+            assert "Cannot reach http://127.0.0.1:9/align" in why
+            down[0] = False
+            end = time.monotonic() + 120
+            while "bravo" not in client.get("/map").json()["transforms"]:
+                assert time.monotonic() < end, "bravo never placed once the aligner answered"
+                time.sleep(0.2)
+            assert "aligner_error" not in client.get("/map").json()["worker"]
+        finally:
+            live.stop()
+
+
+def _reason_when(client, robot: str, words: str, wait_s: float = 60) -> str:
+    """The robot's unmerged reason on /map, once it holds `words` (AssertionError after
+    `wait_s`)."""
+    end, why = time.monotonic() + wait_s, ""
+    while time.monotonic() < end:
+        why = {u["robot"]: u["reason"] for u in client.get("/map").json()["unmerged"]}.get(robot)
+        if why and words in why:
+            return why
+        time.sleep(0.1)
+    raise AssertionError(f"{robot}'s reason never said {words!r}: {why!r}")
