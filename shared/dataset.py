@@ -52,6 +52,7 @@ class Recording:
     intrinsics: Intrinsics
     frames: list[FrameRecord] = field(default_factory=list)
     file_intrinsics: Intrinsics | None = None  # None: the same as `intrinsics`
+    source: Path | None = None  # what was given where it is not `root`: a ROS bag
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -197,9 +198,10 @@ def read_recording(
     root = Path(root)
     from fleetmap.bags import BagTopics, cached_tum, is_bag
 
+    source = None
     if is_bag(root):  # a ROS bag: read as the TUM folder it converts to (cached)
         robot_id = robot_id or root.resolve().stem
-        root = cached_tum(root, topics or BagTopics())
+        source, root = root, cached_tum(root, topics or BagTopics())
     if not root.is_dir():
         if root.exists():  # a file: not "not found"
             raise BadRobotData(f"{root} is a file, not a robot folder nor a ROS bag")
@@ -236,9 +238,9 @@ def read_recording(
     native = dataclasses.replace(intrinsics, width=w, height=h)
     work = working_intrinsics(native)
     if work is None:
-        return Recording(robot_id=robot_id, root=root, intrinsics=native, frames=frames)
+        return Recording(robot_id, root, native, frames, source=source)
     log.info("%s: %dx%d images read at %dx%d", robot_id, w, h, work.width, work.height)
-    return Recording(robot_id, root, work, frames, file_intrinsics=native)
+    return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
 
 
 def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> list[FrameRecord]:

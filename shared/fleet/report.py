@@ -87,7 +87,7 @@ def merge_report(recs, kf_index, placement: Placement, overlaps, fits: list[Fit]
         r.robot_id: {
             "keyframes": len(kf_index[r.robot_id]),
             "frames": len(r),
-            "source": str(r.root),
+            "source": str(r.source or r.root),  # a bag as given, not its cache folder
             "chain": placement.chain.get(r.robot_id),
             # the images as read (`dataset.WORK_PIXELS`) and as the files hold them
             "image_size": [r.intrinsics.width, r.intrinsics.height],

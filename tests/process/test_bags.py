@@ -133,7 +133,9 @@ def test_merge_with_a_ros2_bag_robot_gives_the_folder_transform(sun3d, sun3d_mer
     out_bag = tmp_path / "with_bag"
     a = f"A={sun3d / 'robot_a'}"
     assert main(["-q", "merge", a, f"B={bag}", "-o", str(out_bag)]) == 0
-    T_bag = np.array(json.loads((out_bag / "report.json").read_text())["transforms"]["B"])
+    report = json.loads((out_bag / "report.json").read_text())
+    T_bag = np.array(report["transforms"]["B"])
+    assert report["robots"]["B"]["source"] == str(bag)  # the bag given, not its cache folder
     T_dir = np.array(sun3d_merge[1]["transforms"]["B"])
     dt, dr = transform_error(T_bag, T_dir)
     assert dt < 0.001 and dr < 0.05, (dt, dr)
