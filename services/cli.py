@@ -192,7 +192,7 @@ def _data_commands(sub) -> None:
 
     p = sub.add_parser("simulate", help="render a synthetic fleet recording (TUM layout)")
     p.add_argument("out", metavar="OUT_DIR")
-    p.add_argument("--robots", type=int, default=3, help="how many robots")
+    p.add_argument("--robots", type=_positive_count, default=3, help="how many robots")
     p.add_argument("--frames", type=_positive_count, default=30, help="frames per robot")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.set_defaults(func=commands.cmd_simulate)

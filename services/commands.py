@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shutil
 from pathlib import Path
 
 from tqdm import tqdm
 
 from fleetmap.camera import Intrinsics
+from fleetmap.errors import BadInput, BadRobotData
 from fleetmap.lazy import require
 
 log = logging.getLogger("fleetmap")
@@ -27,19 +29,13 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
     src, out = Path(args.bag), Path(args.output)
     if not is_bag(src):
-        from fleetmap.errors import BadRobotData
-
         raise BadRobotData(f"{src}: not a ROS bag (.bag, or a folder with metadata.yaml)")
     if out.exists():
-        from fleetmap.errors import BadInput
-
         raise BadInput(f"{out} exists: give a new folder")
     try:
         bag_to_tum(src, out, _topics(args))
         rec = read_recording(out)
     except BaseException:  # a failed convert left its folder, which refused the retry
-        import shutil
-
         shutil.rmtree(out, ignore_errors=True)
         raise
     print(f"{len(rec)} RGB-D frames with poses -> {out}")
@@ -103,7 +99,6 @@ def _merge_params(args: argparse.Namespace):
 def cmd_extract(args: argparse.Namespace) -> int:
     """Write one encoded frame structure per keyframe of a robot folder."""
     from fleetmap.dataset import parse_robot_arg, read_recording
-    from fleetmap.errors import BadInput
     from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
     from fleetmap.frame import encode
     from fleetmap.vocabulary import load_vocabulary
@@ -121,20 +116,15 @@ def cmd_extract(args: argparse.Namespace) -> int:
     bar = tqdm(frames, total=n, desc=f"extract {rec.robot_id}", unit="kf", disable=args.quiet)
     try:
         for frame in bar:
-            data = encode(frame)
-            path = out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf"
-            if not path.exists():  # a file of an earlier run stays
-                written.append(path)
-            path.write_bytes(data)
-            total += len(data)
+            data, path = encode(frame), out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf"
+            written += [] if path.exists() else [path]  # a file of an earlier run stays
+            total += path.write_bytes(data)
     except BaseException:  # a frame that cannot be read: no half a robot left behind
         for path in written:
             path.unlink(missing_ok=True)
         raise
-    print(
-        f"{n} keyframes of {len(rec)} frames -> {out} "
-        f"({total / max(n, 1) / 1024:.1f} KiB per frame)"
-    )
+    per = total / max(n, 1) / 1024
+    print(f"{n} keyframes of {len(rec)} frames -> {out} ({per:.1f} KiB per frame)")
     return 0
 
 
@@ -341,7 +331,6 @@ def cmd_align(args: argparse.Namespace) -> int:
 def cmd_merge(args: argparse.Namespace) -> int:
     """The main job: N robot folders in, one global map and report out."""
     require("fleetmap merge")
-    from fleetmap.errors import BadInput
     from fleetmap.pictures import n_cascade
     from fleetmap.services.merge import run_merge
 
@@ -386,10 +375,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from fleetmap.simulate import simulate_fleet
 
     out = Path(args.out)
-    if args.robots < 1:
-        from fleetmap.errors import BadInput
-
-        raise BadInput(f"--robots must be at least 1, got {args.robots}")
     simulate_fleet(
         out,
         args.robots,

@@ -174,6 +174,31 @@ def _pose(msg) -> np.ndarray:
     return pose_from_tum(t, q)
 
 
+def _camera(msg) -> dict:
+    """camera.json's contents from a CameraInfo message (ROS 2 `k`, ROS 1 `K`)."""
+    k = msg.k if hasattr(msg, "k") else msg.K
+    K = np.asarray(k, dtype=float).reshape(3, 3)
+    return {
+        "fx": K[0, 0],
+        "fy": K[1, 1],
+        "cx": K[0, 2],
+        "cy": K[1, 2],
+        "depth_scale": 1000.0,
+        "width": int(msg.width),
+        "height": int(msg.height),
+    }
+
+
+def _written(msg, kind: str, stamp: float, out: Path) -> str:
+    """A pose ("gt") as its list line, or an image ("rgb", "depth") written to `out` and
+    its list line."""
+    if kind == "gt":
+        return f"{stamp:.9f} " + " ".join(f"{v:.9f}" for v in pose_to_tum(_pose(msg)))
+    name = f"{kind}/{stamp:.9f}.png"
+    cv2.imwrite(str(out / name), _image(msg, kind == "depth"))
+    return f"{stamp:.9f} {name}"
+
+
 def _messages(reader, connections, bag: Path):
     """The reader's messages; a storage that fails mid-read (a cut blob) as BadRobotData."""
     it = reader.messages(connections=connections)
@@ -216,18 +241,7 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
             except Exception as exc:  # a damaged message in a readable bag
                 raise BadRobotData(f"{bag}: message {n} on {conn.topic}: {exc}") from exc
             if conn.topic == info_c.topic:
-                if camera is None:
-                    k = msg.k if hasattr(msg, "k") else msg.K  # ROS 2 and ROS 1 names
-                    K = np.asarray(k, dtype=float).reshape(3, 3)
-                    camera = {
-                        "fx": K[0, 0],
-                        "fy": K[1, 1],
-                        "cx": K[0, 2],
-                        "cy": K[1, 2],
-                        "depth_scale": 1000.0,
-                        "width": int(msg.width),
-                        "height": int(msg.height),
-                    }
+                camera = camera or _camera(msg)
                 continue
             stamp = _stamp(msg)
             kind = {pose_c.topic: "gt", depth_c.topic: "depth"}.get(conn.topic, "rgb")
@@ -238,15 +252,9 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
                 )
             seen[kind].add(f"{stamp:.9f}")
             try:
-                if kind == "gt":
-                    tum = " ".join(f"{v:.9f}" for v in pose_to_tum(_pose(msg)))
-                    lists["gt"].append(f"{stamp:.9f} {tum}")
-                    continue
-                name = f"{kind}/{stamp:.9f}.png"
-                cv2.imwrite(str(out / name), _image(msg, kind == "depth"))
+                lists[kind].append(_written(msg, kind, stamp, out))
             except (BadRobotData, ValueError, cv2.error) as exc:
                 raise BadRobotData(f"{bag}: message {n} on {conn.topic}: {exc}") from exc
-            lists[kind].append(f"{stamp:.9f} {name}")
     finally:
         reader.close()
     if camera is None or not lists["rgb"] or not lists["depth"] or not lists["gt"]:

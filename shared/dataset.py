@@ -229,18 +229,26 @@ def read_recording(
             f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
         )
     log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
-    h, w = load_rgb(frames[0].rgb_path).shape[:2]  # the size the images have
-    if declared and (w, h) != (intrinsics.width, intrinsics.height):
-        raise BadRobotData(  # its focal length and centre would be another image's
-            f"{cam} is for {intrinsics.width}x{intrinsics.height} images, but "
-            f"{frames[0].rgb_path} is {w}x{h}"
-        )
-    native = dataclasses.replace(intrinsics, width=w, height=h)
+    native = _of_images(intrinsics, frames[0].rgb_path, cam if declared else None)
     work = working_intrinsics(native)
     if work is None:
         return Recording(robot_id, root, native, frames, source=source)
-    log.info("%s: %dx%d images read at %dx%d", robot_id, w, h, work.width, work.height)
+    n = native
+    log.info("%s: %dx%d images read at %dx%d", robot_id, n.width, n.height, work.width, work.height)
     return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
+
+
+def _of_images(intrinsics: Intrinsics, first: Path, declared_in: Path | None) -> Intrinsics:
+    """The intrinsics at the size the images have (`first`, the first colour image);
+    `declared_in`: the camera.json they came from, whose width and height must be that size
+    (its focal length and centre would be another image's)."""
+    h, w = load_rgb(first).shape[:2]
+    if declared_in is not None and (w, h) != (intrinsics.width, intrinsics.height):
+        raise BadRobotData(
+            f"{declared_in} is for {intrinsics.width}x{intrinsics.height} images, but "
+            f"{first} is {w}x{h}"
+        )
+    return dataclasses.replace(intrinsics, width=w, height=h)
 
 
 def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> list[FrameRecord]:
