@@ -109,6 +109,8 @@ def _images(reader, conns, topics: BagTopics):
             _pick(conns, (IMAGE,), topics.depth, "depth", "--depth-topic"),
         )
     images = [c for c in conns if c.msgtype == IMAGE]
+    if not images:
+        raise BadRobotData(f"no {IMAGE} topic in the bag: it holds no colour or depth images")
     rgb, depth = [], []
     for c in images:
         for conn, _, raw in _messages(reader, [c], "the bag"):
@@ -118,6 +120,8 @@ def _images(reader, conns, topics: BagTopics):
                 raise BadRobotData(f"first message on {c.topic}: {exc}") from exc
             (depth if enc in DEPTH_ENCODINGS else rgb).append(c)
             break
+    if not rgb and not depth:  # topics declared, nothing recorded on them
+        raise BadRobotData(f"the image topics {sorted(c.topic for c in images)} hold no message")
     if topics.rgb:
         rgb = [_pick(conns, (IMAGE,), topics.rgb, "colour", "--rgb-topic")]
     if topics.depth:
@@ -212,6 +216,17 @@ def _messages(reader, connections, bag: Path):
         yield item
 
 
+def _topics_of(reader, bag: Path, topics: BagTopics):
+    """The colour, depth, CameraInfo and pose connections; BadRobotData naming the bag."""
+    conns = list(reader.connections)
+    try:
+        rgb_c, depth_c = _images(reader, conns, topics)
+        info_c = _pick(conns, (INFO,), topics.info, "CameraInfo", "--info-topic")
+        return rgb_c, depth_c, info_c, _pick(conns, POSE_TYPES, topics.pose, "pose", "--pose-topic")
+    except BadRobotData as exc:
+        raise BadRobotData(f"{bag}: {exc}") from None
+
+
 def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
     """Write the bag's colour, depth, intrinsics and poses as a TUM folder `out`."""
     bag = Path(bag)
@@ -223,12 +238,10 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
     except BadRobotData:
         raise
     except Exception as exc:  # rosbags raises its own error classes per format
-        raise BadRobotData(f"{bag}: cannot read the bag: {exc}") from exc
+        why = " ".join(str(exc).split())  # one line (a YAML parser's message spans nine)
+        raise BadRobotData(f"{bag}: cannot read the bag: {why}") from exc
     try:
-        conns = list(reader.connections)
-        rgb_c, depth_c = _images(reader, conns, topics)
-        info_c = _pick(conns, (INFO,), topics.info, "CameraInfo", "--info-topic")
-        pose_c = _pick(conns, POSE_TYPES, topics.pose, "pose", "--pose-topic")
+        rgb_c, depth_c, info_c, pose_c = _topics_of(reader, bag, topics)
         for sub in ("rgb", "depth"):
             (out / sub).mkdir(parents=True, exist_ok=True)
         lists = {"rgb": [], "depth": [], "gt": []}

@@ -57,7 +57,9 @@ async def map_cloud(
     request: Request,
     db: Database,
     renderer: Renderer,
-    voxel: float = Query(0.05, ge=BASE_VOXEL_M, le=1.0, description="voxel size in metres"),
+    voxel: float = Query(
+        0.05, ge=BASE_VOXEL_M, le=1.0, allow_inf_nan=False, description="voxel size in metres"
+    ),
 ) -> Response:
     """The merged cloud of the placed robots (binary PLY: x y z, image colour, per-point
     `robot` index in the order of the map's `robots`), in the reference frame."""

@@ -39,7 +39,9 @@ def robot_cloud(
     db: Database,
     scene: Scene,
     robot: str = ROBOT,
-    voxel: float = Query(DEFAULT_VOXEL_M, ge=BASE_VOXEL_M, le=1.0, description="metres"),
+    voxel: float = Query(
+        DEFAULT_VOXEL_M, ge=BASE_VOXEL_M, le=1.0, allow_inf_nan=False, description="metres"
+    ),
     frame: Literal["own", "reference"] = Query(
         "own", description="own: the robot's map frame; reference: placed, drift-corrected"
     ),

@@ -212,3 +212,5 @@ def test_the_frameworks_refusals_carry_the_error_body(client):
         assert r.status_code == status and body["error"] == error, r.text
         assert isinstance(body["detail"], str) and body["detail"]
     assert "wait" in bad_query.json()["detail"]
+    nan = client.get("/map/cloud.ply", params={"voxel": "nan"})  # said "<= 1" before
+    assert nan.status_code == 422 and "finite number" in nan.json()["detail"], nan.text

@@ -173,3 +173,8 @@ def test_a_convert_that_fails_names_why_and_leaves_nothing(sun3d, tmp_path, caps
     assert main(["convert", str(zero), "-o", str(out)]) == 1
     assert "two messages on /cam/" in capsys.readouterr().err and not out.exists()
     assert main(["convert", str(bag), "-o", str(out)]) == 0  # the retry is not refused
+    empty = tmp_path / "e_bag"
+    write_bag(sun3d / "robot_b", empty, frames=0)  # its topics, no message on them
+    assert main(["convert", str(empty), "-o", str(tmp_path / "e")]) == 1
+    err = capsys.readouterr().err
+    assert f"{empty}: the image topics ['/cam/color', '/cam/depth'] hold no message" in err
