@@ -117,7 +117,8 @@ def cmd_extract(args: argparse.Namespace) -> int:
     try:
         for frame in bar:
             data, path = encode(frame), out / f"{rec.robot_id}_{frame.stamp:.6f}.fmf"
-            written += [] if path.exists() else [path]  # a file of an earlier run stays
+            if not path.exists():  # a file of an earlier run stays
+                written.append(path)
             total += path.write_bytes(data)
     except BaseException:  # a frame that cannot be read: no half a robot left behind
         for path in written:

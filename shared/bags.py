@@ -14,6 +14,7 @@ with `BagTopics`.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
 import shutil
@@ -113,12 +114,8 @@ def _images(reader, conns, topics: BagTopics):
         raise BadRobotData(f"no {IMAGE} topic in the bag: it holds no colour or depth images")
     rgb, depth = [], []
     for c in images:
-        for conn, _, raw in _messages(reader, [c], "the bag"):
-            try:
-                enc = reader.deserialize(raw, conn.msgtype).encoding
-            except Exception as exc:  # a damaged first message
-                raise BadRobotData(f"first message on {c.topic}: {exc}") from exc
-            (depth if enc in DEPTH_ENCODINGS else rgb).append(c)
+        for _, _, msg in _messages(reader, [c]):  # the first message's encoding
+            (depth if msg.encoding in DEPTH_ENCODINGS else rgb).append(c)
             break
     if not rgb and not depth:  # topics declared, nothing recorded on them
         raise BadRobotData(f"the image topics {sorted(c.topic for c in images)} hold no message")
@@ -203,17 +200,24 @@ def _written(msg, kind: str, stamp: float, out: Path) -> str:
     return f"{stamp:.9f} {name}"
 
 
-def _messages(reader, connections, bag: Path):
-    """The reader's messages; a storage that fails mid-read (a cut blob) as BadRobotData."""
+def _messages(reader, connections, bag: Path | None = None):
+    """(n, connection, message) of the reader's messages, deserialized; a storage that
+    fails mid-read (a cut blob) or a damaged message as BadRobotData (naming `bag` where
+    given)."""
+    where = "" if bag is None else f"{bag}: "
     it = reader.messages(connections=connections)
-    while True:
+    for n in itertools.count():
         try:
-            item = next(it)
+            conn, _, raw = next(it)
         except StopIteration:
             return
         except Exception as exc:  # rosbags' own error classes per format
-            raise BadRobotData(f"{bag}: cannot read the bag's messages: {exc}") from exc
-        yield item
+            raise BadRobotData(f"{where}cannot read the bag's messages: {exc}") from exc
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # a damaged message in a readable bag
+            raise BadRobotData(f"{where}message {n} on {conn.topic}: {exc}") from exc
+        yield n, conn, msg
 
 
 def _topics_of(reader, bag: Path, topics: BagTopics):
@@ -248,11 +252,7 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
         camera = None
         wanted = [rgb_c, depth_c, info_c, pose_c]
         seen: dict[str, set] = {"rgb": set(), "depth": set(), "gt": set()}
-        for n, (conn, _, raw) in enumerate(_messages(reader, wanted, bag)):
-            try:
-                msg = reader.deserialize(raw, conn.msgtype)
-            except Exception as exc:  # a damaged message in a readable bag
-                raise BadRobotData(f"{bag}: message {n} on {conn.topic}: {exc}") from exc
+        for n, conn, msg in _messages(reader, wanted, bag):
             if conn.topic == info_c.topic:
                 camera = camera or _camera(msg)
                 continue

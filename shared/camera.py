@@ -152,13 +152,6 @@ def no_reading_as_0(depth: np.ndarray) -> np.ndarray:
     return depth
 
 
-def truncated_jpeg(head: bytes, tail: bytes) -> bool:
-    """Whether an image whose first bytes are `head` and last `tail` is a JPEG cut short:
-    no end-of-image marker (trailing zero padding allowed). OpenCV decodes such a file with
-    a warning and grey where the data stopped."""
-    return head[:2] == b"\xff\xd8" and not tail.rstrip(b"\x00").endswith(b"\xff\xd9")
-
-
 def backproject_pixels(
     uv: np.ndarray,
     depth: np.ndarray,

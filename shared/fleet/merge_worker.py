@@ -98,7 +98,7 @@ class LiveMap:
         self.failures = 0
         self._robots_placed: tuple = ()  # robots known (and copiers) at the last placement
         self._noted: dict | None = None
-        self._aligner_error: dict | None = None  # the last failure since the last answer
+        self._aligner_error: str | None = None  # the last failure since the last answer
         self._kf_total, self._kf_changed = -1, time.monotonic()
         self.quiet = False
         self._linker = ThreadPoolExecutor(1, thread_name_prefix="live-link")
@@ -188,7 +188,7 @@ class LiveMap:
         except Exception as exc:  # the aligner failed: tried again after the backoff
             self.failures += 1
             log.warning("live map: %s", exc)
-            self._aligner_error = {"error": str(exc)[:300], "at": time.time()}
+            self._aligner_error = str(exc)[:300]
             return
         self._aligner_error = None  # it answers again
         if self._store_result(key, result):
@@ -226,7 +226,7 @@ class LiveMap:
         work = {"aligning": [k.split("|") for k in flying], "due": max(0, due - len(flying))}
         work["quiet"] = self.quiet  # no keyframe for settle_s: last fits done once idle
         if self._aligner_error is not None:  # `GET /map` says why pairs wait (down?)
-            work["aligner_error"] = self._aligner_error["error"]
+            work["aligner_error"] = self._aligner_error
         if work != self._noted:
             write_worker(self.db, work | {"since": time.time()})
             self._noted = work
