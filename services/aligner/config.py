@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.align.types import AlignParams
 from fleetmap.services.serving import HEADER_TIMEOUT_S
-from fleetmap.services.settings import refuse_flat_names, secrets_dir
+from fleetmap.services.settings import Token, refuse_flat_names, secrets_dir
 
 
 class Settings(BaseSettings):
@@ -20,7 +20,7 @@ class Settings(BaseSettings):
     )
 
     # access control: none configured = open (logged at start-up)
-    operator_token: SecretStr | None = None
+    operator_token: Token | None = None
     robot_tokens: dict[str, SecretStr] = {}  # JSON: {"robot_id": "token", ...}
     max_body_bytes: int = Field(128 * 1024 * 1024, ge=1)  # enforced while streaming
     # a request's headers within this many seconds, else the connection is closed (slowloris)
@@ -40,11 +40,3 @@ class Settings(BaseSettings):
     def __init__(self, **values):
         refuse_flat_names("FLEETMAP_ALIGNER_", AlignParams, "ALIGN")
         super().__init__(**values)
-
-    @field_validator("operator_token")
-    @classmethod
-    def _not_empty(cls, v: SecretStr | None) -> SecretStr | None:
-        """An empty token turns access control on with a token no caller can send."""
-        if v is not None and not v.get_secret_value():
-            raise ValueError("is empty: set a token, or unset the variable for open access")
-        return v
