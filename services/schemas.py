@@ -28,6 +28,18 @@ Matrix4 = Annotated[list[list[Annotated[float, Strict()]]], AfterValidator(_four
 """A 4x4 matrix in a JSON body, rows of numbers (pose or rigid transform): numbers only
 (`true` and "1" were taken for 1.0: an outside tester's review)."""
 
+
+def _not_empty(v: SecretStr) -> SecretStr:
+    """An empty token turned access control on with a token no caller can send: every
+    operator route answered 401 (an outside tester's review, session 51)."""
+    if not v.get_secret_value():
+        raise ValueError("is empty: set a token, or unset the variable for open access")
+    return v
+
+
+#: A token setting: a secret, never empty.
+Token = Annotated[SecretStr, AfterValidator(_not_empty)]
+
 #: A setting whose name holds one of these is never shown, whatever its type.
 SECRET_WORDS = ("token", "password", "secret", "api_key", "credential")
 REDACTED = "***"

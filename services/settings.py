@@ -6,23 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from typing import Annotated
-
-from pydantic import AfterValidator, SecretStr
 
 from fleetmap.errors import BadInput
-
-
-def _not_empty(v: SecretStr) -> SecretStr:
-    """An empty token turned access control on with a token no caller can send: every
-    operator route answered 401 (an outside tester's review, session 51)."""
-    if not v.get_secret_value():
-        raise ValueError("is empty: set a token, or unset the variable for open access")
-    return v
-
-
-#: A token setting: a secret, never empty.
-Token = Annotated[SecretStr, AfterValidator(_not_empty)]
 
 
 def refuse_flat_names(prefix: str, params_class, nested: str, renamed=()) -> None:

@@ -6,8 +6,9 @@ from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from fleetmap.align.types import AlignParams
+from fleetmap.services.schemas import Token
 from fleetmap.services.serving import HEADER_TIMEOUT_S
-from fleetmap.services.settings import Token, refuse_flat_names, secrets_dir
+from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
 class Settings(BaseSettings):

@@ -13,8 +13,9 @@ from fleetmap.frame import MAX_FRAME_BYTES
 from fleetmap.matching import MatchParams
 from fleetmap.place import CascadeParams
 from fleetmap.place.store import DB_FILE, PG_TIMEOUT_S, POSTGRES_SCHEMES
+from fleetmap.services.schemas import Token
 from fleetmap.services.serving import HEADER_TIMEOUT_S
-from fleetmap.services.settings import Token, refuse_flat_names, secrets_dir
+from fleetmap.services.settings import refuse_flat_names, secrets_dir
 
 
 def default_data_dir() -> Path:
