@@ -19,12 +19,11 @@ the same grey levels up to gain and offset (Pearson correlation; right alignment
 recall bench 0.56-0.92, wrong ones with the free space clean -0.38 or less), while the free
 space, judged tightly, refuses slides (wrong ones with a correlation of 0.5 or more: firm
 consistency 0.82 or less). A merge needs both, both ways, on the gate's overlap, with
-relief where the maps meet (`Judged.relief_m`: on one plane the free space cannot tell where
-along it, and grey levels alone decide), and no other basin that passes as far away as the
-gate's rivals (`rival_m`, `rival_deg`). Every
-length follows the scene's median depth, and the free space is judged no tighter than
-the depth noise the two robots' own views show at each depth (`GeometricLook.noise_k`,
-`fleetmap.depth_noise`).
+relief where the maps meet (`surfaces.relief`: on one plane the free space cannot tell
+where along it, and grey levels alone decide), and no other basin that passes as far away
+as the gate's rivals (`rival_m`, `rival_deg`). Every length follows the scene's median
+depth, and the free space is judged no tighter than the depth noise the two robots' own
+views show at each depth (`GeometricLook.noise_k`, `fleetmap.depth_noise`).
 """
 
 from __future__ import annotations
@@ -36,6 +35,7 @@ import numpy as np
 
 from fleetmap.align.hypotheses import beyond_rivals, choose, probe_points
 from fleetmap.align.manhattan import manhattan_starts
+from fleetmap.align.surfaces import grey_correlation, relief
 from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
 from fleetmap.geometry import apply, displacement_rms, invert
 from fleetmap.mapcloud import REG, SEEDED, free_space_check, icp, overlap_fitness
@@ -66,7 +66,7 @@ FIRM_SLACK = 0.2
 class Judged:
     """One refined basin: T_a_b, each map's share on the other (within half a voxel),
     firm free-space consistency each way, the grey-level correlation and its point count,
-    the relief of the surfaces that meet (`relief`) at the look's voxel `voxel_m`, and how
+    the relief of the surfaces that meet (`surfaces.relief`) at the look's voxel `voxel_m`, and how
     many seeds landed here."""
 
     T_a_b: np.ndarray
@@ -98,49 +98,6 @@ class Judged:
             f"correlation {self.correlation:.2f} (need {look.min_correlation}), relief where "
             f"the maps meet {self.relief_m:.2f} m (need the look's voxel, {self.voxel_m:.2f} m)"
         )
-
-
-def _meet(cloud_a, cloud_b, T: np.ndarray, distance: float):
-    """B's points moved by T, which of them have one of A's within `distance`, and the
-    index of that nearest one."""
-    from scipy.spatial import cKDTree
-
-    pb = apply(T, np.asarray(cloud_b.points))
-    d, i = cKDTree(np.asarray(cloud_a.points)).query(pb, distance_upper_bound=distance)
-    return pb, np.isfinite(d), i
-
-
-def grey_correlation(cloud_a, cloud_b, T: np.ndarray, distance: float) -> tuple[float, int]:
-    """Pearson correlation of the grey levels of B's points (moved by T) and their nearest
-    of A's within `distance`, and how many met (NaN under 30)."""
-    _, met, i = _meet(cloud_a, cloud_b, T, distance)
-    if met.sum() < 30:
-        return float("nan"), int(met.sum())
-    ga = np.asarray(cloud_a.colors).mean(1)[i[met]]
-    gb = np.asarray(cloud_b.colors).mean(1)[met]
-    if ga.std() == 0 or gb.std() == 0:
-        return float("nan"), int(met.sum())
-    return float(np.corrcoef(ga, gb)[0, 1]), int(met.sum())
-
-
-def relief(cloud_a, cloud_b, T: np.ndarray, distance: float) -> float:
-    """How far the surfaces where the maps meet (B's points, moved by T, within `distance`
-    of A's) stand off one plane: the spread (standard deviation, metres) of those points
-    along the direction most of A's normals there share (the leading eigenvector of their
-    scatter matrix); 0 where fewer than 30 meet. Where it is under the look's voxel the two
-    maps meet on one plane, as this look sees them: the free space cannot tell where along
-    it, nor turned how far about its normal, and the grey levels would decide three of the
-    six degrees alone. Recall seed 80 (0.7 of the recordings' size through a D435's noise):
-    a HoloLens pair (18% shared) merged 4.6 m off (mean map-point error) at firm 1.00 both
-    ways and grey levels 0.53, B's patch of one wall or floor laid on A's, relief 0.01 m at
-    a 0.094 m voxel (the truth there 0.13 m); the third look's right merges of the suite's
-    recall tests stand 3.0-5.6 voxels off one plane (docs/ALIGNER.md, session 52)."""
-    pb, met, i = _meet(cloud_a, cloud_b, T, distance)
-    if met.sum() < 30 or not cloud_a.has_normals():
-        return 0.0
-    n = np.asarray(cloud_a.normals)[i[met]]
-    axis = np.linalg.eigh(n.T @ n)[1][:, -1]
-    return float(np.std(pb[met] @ axis))
 
 
 def basins(
@@ -186,6 +143,27 @@ def refine(T: np.ndarray, clouds, voxel: float) -> np.ndarray:
     return icp(b, clouds[0].at(voxel / 2), T, (voxel / 2,), 30)[0]
 
 
+def refine_colour(T: np.ndarray, clouds, voxel: float) -> np.ndarray | None:
+    """A basin's T_a_b refined by coloured ICP at a voxel then half a voxel (Open3D's
+    `registration_colored_icp`: the surfaces' grey levels pull along where depth alone
+    holds a basin short of the place), or None where the clouds lack colour or gradients."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    try:
+        for v in (voxel, voxel / 2):
+            a, b = clouds[0].at(v), clouds[1].at(v, normals=False)
+            if not (a.has_colors() and b.has_colors()):
+                return None
+            T = np.asarray(reg.registration_colored_icp(
+                b, a, 1.5 * v, T, reg.TransformationEstimationForColoredICP(),
+                reg.ICPConvergenceCriteria(max_iteration=30),
+            ).transformation)  # fmt: skip
+    except RuntimeError:  # too few points with colour gradients
+        return None
+    return T
+
+
 def _land(found: list[list], T: np.ndarray, probe: np.ndarray, voxel: float) -> None:
     """Count T in the basin (`found`: [T, starts]) within a voxel of it, or open one."""
     for b in found:
@@ -199,7 +177,7 @@ def judge(T: np.ndarray, clouds, seen, voxel: float, floor=None) -> Judged:
     """Overlap, firm free-space consistency (at half a voxel, of the points off depth
     edges: `ViewsCloud.off_edges`; no tighter than `floor` of the depth read, the depth's
     noise: `_PairClouds.noise_floor`), grey-level correlation and the relief where the maps
-    meet (`relief`) of an alignment, both ways.
+    meet (`surfaces.relief`) of an alignment, both ways.
     `seen`: each robot's views as `SeenDepth`."""
     half = voxel / 2
     ca, cb = clouds[0].at(half), clouds[1].at(half, normals=False)  # B's: points, colours
@@ -357,10 +335,12 @@ def judged_basins(found, clouds, seen, voxel: float, look: GeometricLook, floor)
         if not r >= screen:  # NaN (under 30 points meet) is not
             continue
         firms.append(min(firm_ways(T, clouds, seen, voxel, floor)))
-        if firms[-1] >= firm_bar:
-            j = judge(refine(T, clouds, voxel), clouds, seen, voxel, floor)
-            j.seeds = n
-            judged.append(j)
+        if firms[-1] >= firm_bar:  # refined on depth, and on colour too
+            colour = refine_colour(T, clouds, voxel) if look.colour_refine else None
+            for Tr in (refine(T, clouds, voxel), colour):
+                if Tr is not None:
+                    judged.append(judge(Tr, clouds, seen, voxel, floor))
+                    judged[-1].seeds = n
     if judged:
         return judged, ""
     if firms:

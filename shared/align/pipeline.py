@@ -28,7 +28,6 @@ from fleetmap.align.geometric_look import (
     falls_back,
     firm_at_floor,
     geometric_look,
-    grey_correlation,
     unfirm,
 )
 from fleetmap.align.hypotheses import (
@@ -42,6 +41,7 @@ from fleetmap.align.hypotheses import (
 )
 from fleetmap.align.pinning import carried, pinned_or_refused, unpinned
 from fleetmap.align.second_look import affine_matches
+from fleetmap.align.surfaces import grey_correlation
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
 from fleetmap.align.validation import holdout_residual, spread_m
 from fleetmap.correspondences import Correspondences, RGBDView, pair_features, verified_and_raw
