@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.align.hypotheses import beyond_rivals, choose, probe_points
+from fleetmap.align.hypotheses import beyond_rivals, choose, colour_icp, probe_points
 from fleetmap.align.manhattan import manhattan_starts
 from fleetmap.align.surfaces import grey_correlation, relief
 from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
@@ -66,8 +66,8 @@ FIRM_SLACK = 0.2
 class Judged:
     """One refined basin: T_a_b, each map's share on the other (within half a voxel),
     firm free-space consistency each way, the grey-level correlation and its point count,
-    the relief of the surfaces that meet (`surfaces.relief`) at the look's voxel `voxel_m`, and how
-    many seeds landed here."""
+    the relief of the surfaces that meet (`surfaces.relief`) at the look's voxel `voxel_m`,
+    and how many seeds landed here."""
 
     T_a_b: np.ndarray
     overlap: tuple[float, float]
@@ -141,27 +141,6 @@ def refine(T: np.ndarray, clouds, voxel: float) -> np.ndarray:
     """A basin's T_a_b refined by point-to-plane ICP at half a voxel."""
     b = clouds[1].at(voxel / 2, normals=False)  # ICP's source: B's normals are not read
     return icp(b, clouds[0].at(voxel / 2), T, (voxel / 2,), 30)[0]
-
-
-def refine_colour(T: np.ndarray, clouds, voxel: float) -> np.ndarray | None:
-    """A basin's T_a_b refined by coloured ICP at a voxel then half a voxel (Open3D's
-    `registration_colored_icp`: the surfaces' grey levels pull along where depth alone
-    holds a basin short of the place), or None where the clouds lack colour or gradients."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    try:
-        for v in (voxel, voxel / 2):
-            a, b = clouds[0].at(v), clouds[1].at(v, normals=False)
-            if not (a.has_colors() and b.has_colors()):
-                return None
-            T = np.asarray(reg.registration_colored_icp(
-                b, a, 1.5 * v, T, reg.TransformationEstimationForColoredICP(),
-                reg.ICPConvergenceCriteria(max_iteration=30),
-            ).transformation)  # fmt: skip
-    except RuntimeError:  # too few points with colour gradients
-        return None
-    return T
 
 
 def _land(found: list[list], T: np.ndarray, probe: np.ndarray, voxel: float) -> None:
@@ -335,8 +314,8 @@ def judged_basins(found, clouds, seen, voxel: float, look: GeometricLook, floor)
         if not r >= screen:  # NaN (under 30 points meet) is not
             continue
         firms.append(min(firm_ways(T, clouds, seen, voxel, floor)))
-        if firms[-1] >= firm_bar:  # refined on depth, and on colour too
-            colour = refine_colour(T, clouds, voxel) if look.colour_refine else None
+        if firms[-1] >= firm_bar:  # refined on depth, and on colour too (a voxel, half)
+            colour = colour_icp(T, clouds, (voxel, voxel / 2), 30) if look.colour_refine else None
             for Tr in (refine(T, clouds, voxel), colour):
                 if Tr is not None:
                     judged.append(judge(Tr, clouds, seen, voxel, floor))

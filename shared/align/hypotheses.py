@@ -300,23 +300,31 @@ def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarra
     refined = [(T, "+icp")]
     if not (p.colour_icp and ca1.has_colors() and cb1.has_colors()):
         return refined
-    T = T0
-    try:
-        for v in (vm, 2 * v1 / 3):
-            ca, cb = clouds[0].at(v), clouds[1].at(v, normals=False)
+    T = colour_icp(T0, clouds, (vm, 2 * v1 / 3), 20)
+    return refined if T is None else [*refined, (T, "+colour")]
+
+
+def colour_icp(T: np.ndarray, clouds, scales, iterations: int) -> np.ndarray | None:
+    """T_a_b refined by Open3D's coloured ICP of B's cloud onto A's at each voxel of
+    `scales` in turn (within 1.5 voxels), or None where the clouds lack colour or too few
+    points have colour gradients."""
+    for v in scales:
+        ca, cb = clouds[0].at(v), clouds[1].at(v, normals=False)
+        if not (ca.has_colors() and cb.has_colors()):
+            return None
+        try:
             r = REG.registration_colored_icp(
                 cb,
                 ca,
                 1.5 * v,
                 T,
                 REG.TransformationEstimationForColoredICP(),
-                REG.ICPConvergenceCriteria(max_iteration=20),
+                REG.ICPConvergenceCriteria(max_iteration=iterations),
             )
-            T = np.asarray(r.transformation)
-        refined.append((T, "+colour"))
-    except RuntimeError:  # too few points with colour gradients
-        pass
-    return refined
+        except RuntimeError:  # too few points with colour gradients
+            return None
+        T = np.asarray(r.transformation)
+    return T
 
 
 def surface_rmse(source, target, T: np.ndarray, distance: float) -> float:

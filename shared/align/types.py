@@ -64,7 +64,7 @@ class GeometricLook:
     noise_k: float = 2.0
     # grey levels of the points that meet (within half a voxel), Pearson
     min_correlation: float = 0.5
-    # each basin refined by coloured ICP too (`geometric_look.refine_colour`), both judged:
+    # each basin refined by coloured ICP too (`hypotheses.colour_icp`), both judged:
     # opt-in. Recall seed 80 and the suite (docs/ALIGNER.md, session 52): two refusals
     # become merges 5.2 and 6.4 cm off the truth (loose), no wrong merge, none made right
     colour_refine: bool = False

@@ -62,6 +62,15 @@ def true_transform(M: dict, T_true_src: np.ndarray, scale: float) -> np.ndarray:
     return T_true
 
 
+def frame(rotvec, t) -> np.ndarray:
+    """A map frame (robot map <- source map) from a rotation vector and a translation."""
+    from scipy.spatial.transform import Rotation
+
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), t
+    return M
+
+
 def mean_map_error(tmp_path, T_true: np.ndarray, scale: float) -> float:
     """The mean displacement (metres, at the recording's size) of B's map points between
     the merge's transform and T_true, as `bench/recall.py` scores a merge: every 5th view,
@@ -364,13 +373,6 @@ def test_a_rival_that_refines_into_the_winners_place_does_not_refuse_a_desk(tum_
     0.901 of its score, unrefined, and the pair was refused as ambiguous. Refined as the
     winner is, the rival lands in the winner's place: one basin the coarse ICP left apart
     (`hypotheses._rivals`). Merged within 5 cm / 2 deg at B's cameras (0.3 cm / 0.3 deg)."""
-    from scipy.spatial.transform import Rotation
-
-    def frame(rotvec, t):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), t
-        return T
-
     M = {
         "A": frame([-2.181796, 2.178051, 0.391745], [1.182389, -3.311672, 4.90913]),
         "B": frame([1.343507, 2.47126, 1.106478], [-2.951789, 1.370605, -2.181718]),
@@ -465,15 +467,6 @@ def test_a_room_seen_through_more_noise_than_the_third_look_can_judge_is_not_mer
     assert "cannot tell alignments a voxel apart" in report["fits"][0]["reason"]
 
 
-def frame(rotvec, t) -> np.ndarray:
-    """A map frame (robot map <- source map) from a rotation vector and a translation."""
-    from scipy.spatial.transform import Rotation
-
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), t
-    return M
-
-
 def test_two_patches_of_one_plane_are_not_a_merge(hololens, tmp_path):
     """hl_b frames 0-60 and 75-135 (18% of B shared) at 0.7 of their size through a D435's
     noise, in recall seed 80's map frames: both image looks refuse, and through session 51
@@ -506,7 +499,7 @@ def test_a_basin_depth_holds_short_of_the_place_is_carried_there_by_colour(
     and through session 52's first change the third look refused too: of its 30 basins the
     nearest to the truth lay 0.22 m off, where point-to-plane ICP settles (firm free space
     0.75), while the truth itself passes (firm 0.95, grey levels 0.68). Coloured ICP from
-    that basin lands 3 cm from the truth, and passes (`geometric_look.refine_colour`,
+    that basin lands 3 cm from the truth, and passes (`hypotheses.colour_icp`,
     opt-in: `GeometricLook.colour_refine`): merged 6.2 cm / 0.5 deg off at B's cameras at
     the recording's size, where ICP of the maps from the truth itself moves 3.3 cm (recall
     seed 80's `truth_basin`); within 8 cm / 3 deg, short of the bench's wrong line."""
