@@ -278,6 +278,34 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         far = beyond_rivals(j.T_a_b, win.T_a_b, probe, p)
         if far:
             return AlignResult(False, f"ambiguous: another alignment {far} away passes too")
+    return settle(win, R, pair, p, voxel, floor, f"{len(found)} basins ({win.seeds} seeds)")
+
+
+def follow(T_near: np.ndarray, pair, R, p: AlignParams, depth: float) -> AlignResult | None:
+    """The look's merge moved to where the raw matches pull it (`pinning.pinned_or_refused`):
+    the alignment they prefer near the merge, refined as a basin is (`refine`) and judged as
+    the look judges (`judge`); None where it does not pass. Not refined further as `settle`
+    refines: there the depth leads back to where the geometry led. Through a D435's noise a
+    HoloLens pair (51% shared) passed the look 7.2 cm off, where 28 raw matches agreed with
+    an alignment 9 cm from it against 20: that alignment, 3.6 cm from the truth, refined
+    lands 1.7 cm from it and passes (firm 0.98, grey levels 0.77), and no alignment nearby
+    is preferred there; `settle`'s refinement of it slid back to the 7.2 cm (docs/ALIGNER.md,
+    session 53)."""
+    look, voxel = p.geometric, look_voxel(p, depth)
+    clouds, floor = pair.clouds(), pair.noise_floor(look.noise_k)
+    moved = judge(refine(T_near, clouds, voxel), clouds, pair.seen(), voxel, floor)
+    if not moved.passes(look, p):
+        return None
+    return merged(moved, "fpfh+icp+matches", "moved where the raw matches agree")
+
+
+def settle(win: Judged, R, pair, p: AlignParams, voxel: float, floor, found: str) -> AlignResult:
+    """The look's merge at a basin that passed (`win`): refined as the first look refines
+    its winner (`hypotheses.choose`: the raw matches `R` choose between the refinements where
+    they can tell), kept unrefined where the refinement slides off what passed, refused where
+    it slides as far as a rival. `found`: how the basin was found, for the reason."""
+    look, clouds, seen = p.geometric, pair.clouds(), pair.seen()
+    probe = probe_points(clouds[1].at(voxel))
     h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel, floor)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
@@ -288,16 +316,21 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
                 f"where the gate refuses it ({refined.why_not(look, p)})",
             )  # fmt: skip
         h.T_a_b, refined = win.T_a_b, win
+    out = merged(refined, "fpfh+icp" + h.source.removeprefix("fpfh"), found)
+    out.hypotheses = [h.summary()]
+    return out
+
+
+def merged(j: Judged, method: str, found: str) -> AlignResult:
+    """The look's merge at `j`, with why it passed. `found`: how it was found."""
     return AlignResult(
         True,
         "passed on the maps' geometry and colour: firm free-space consistency "
-        f"{min(refined.firm):.2f}, grey-level correlation {refined.correlation:.2f} over "
-        f"{refined.meeting} points, overlap {min(refined.overlap):.2f}, "
-        f"{len(found)} basins ({win.seeds} seeds)",
-        h.T_a_b,
-        "fpfh+icp" + h.source.removeprefix("fpfh"),
-        fitness=refined.overlap[0],
-        hypotheses=[h.summary()],
+        f"{min(j.firm):.2f}, grey-level correlation {j.correlation:.2f} over {j.meeting} "
+        f"points, overlap {min(j.overlap):.2f}, {found}",
+        j.T_a_b,
+        method,
+        fitness=j.overlap[0],
     )
 
 

@@ -25,6 +25,10 @@ from fleetmap.geometry import displacement_rms, residuals
 #: geometry refuses the alignment the matches prefer near a merge T and leads back to T
 FallsBack = Callable[[np.ndarray, np.ndarray], bool]
 
+#: `follow(T_near)` (`geometric_look.follow` on the pair): the look's merge moved to the
+#: alignment the matches prefer nearby, or None where the look would not merge it there
+Follow = Callable[[np.ndarray], AlignResult | None]
+
 
 def carried(decisive: bool, T: np.ndarray, R: Correspondences, p: AlignParams) -> bool:
     """Did the geometry carry a first-look merge on its own: decisive free space, and
@@ -51,20 +55,32 @@ def unpinned(
     many distinct places (`validation.distinct` at the voxel): a handful of places, each
     matched several times, is still a handful. With `back`, a place the maps' geometry
     refuses and leads back from to T does not count."""
+    return pull(T, R, probe, p, floor, back)[0]
+
+
+def pull(
+    T: np.ndarray,
+    R: Correspondences,
+    probe: np.ndarray,
+    p: AlignParams,
+    floor: int = 0,
+    back: FallsBack | None = None,
+) -> tuple[str, np.ndarray | None]:
+    """`unpinned`'s reason, and the alignment the matches prefer (None where they pin T)."""
     found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
     if found is None:
-        return ""
+        return "", None
     T_near, n, n_T = found
     agree = residuals(T_near, R.X, R.Y) < p.ransac_tol_m
     if floor and distinct(R.X, R.Y, agree, p.voxel_m) < floor:
-        return ""
+        return "", None
     if back is not None and back(T_near, T):
-        return ""
+        return "", None
     return (
         f"the matches agree better with an alignment {displacement_rms(T_near, T, probe):.2f} m "
         f"away ({n} against {n_T} within {p.ransac_tol_m:.2f} m): the maps' geometry alone "
         "led here (surfaces that slide along each other?)"
-    )
+    ), T_near
 
 
 def pinned_or_refused(
@@ -74,6 +90,7 @@ def pinned_or_refused(
     p: AlignParams,
     C: Correspondences | None = None,
     back: FallsBack | None = None,
+    follow: Follow | None = None,
 ) -> AlignResult:
     """The third look's merge, refused where the matches do not pin it (`unpinned`), as the
     second look's, where the alignment they prefer gathers at least half `min_inliers`
@@ -92,11 +109,19 @@ def pinned_or_refused(
     pair, 18% shared, merged about 3 cm from the truth, was refused through session 33 by
     12 raw matches at seven places agreeing with an alignment 21 cm off, whose firm free
     space is 0.55 and from which ICP returns to within 7 mm of the merge; docs/ALIGNER.md,
-    session 34)."""
+    session 34). `follow` (`geometric_look.follow` on the pair): where the matches pull the
+    merge to a place nearby that the look would merge too and that they pin in turn, the
+    merge moves there instead of being refused (session 53)."""
     if not third.merged:
         return third
+    floor = p.min_inliers // 2
+    why, T_near = pull(third.T_a_b, R, probe, p, floor, back)
+    moved = follow(T_near) if why and follow is not None else None
+    if moved is not None and moved.merged and not unpinned(moved.T_a_b, R, probe, p, floor, back):
+        led = displacement_rms(moved.T_a_b, third.T_a_b, probe)
+        moved.reason += f"; the maps' geometry led {led:.2f} m from here, where {why.split(':')[0]}"
+        third, why = moved, ""
     T = third.T_a_b
-    why = unpinned(T, R, probe, p, p.min_inliers // 2, back)
     why = why or (outvoted(T, C, probe, p) if C is not None else "")
     if why:
         third.merged, third.reason = False, f"{third.reason}, but {why}"

@@ -27,6 +27,7 @@ import numpy as np
 from fleetmap.align.geometric_look import (
     falls_back,
     firm_at_floor,
+    follow,
     geometric_look,
     unfirm,
 )
@@ -85,7 +86,8 @@ def align_views(
     if not res.merged and p.use_icp and p.geometric_look:
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
         back = lambda T_near, T: falls_back(T_near, T, pair, p, depth)  # noqa: E731
-        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back)
+        move = lambda T_near: follow(T_near, pair, R, p, depth)  # noqa: E731
+        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back, move)
         if third.merged:
             res = third
         else:

@@ -285,6 +285,43 @@ def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
     assert not out.merged and "agree better" in out.reason, out.reason
 
 
+def test_a_merge_the_matches_pull_moves_where_the_look_would_merge_too():
+    """`pinning.pinned_or_refused`'s `follow` (`geometric_look.follow` in the pipeline): the
+    alignment the matches prefer near a third-look merge 13 cm off (the truth) is handed to
+    it, and where the look merges there and the matches pin that place, the merge moves
+    there, its reason naming the pull; where the look would not merge there, or where the
+    place it returns is pulled in turn, the merge is refused as before."""
+    from fleetmap.align.pinning import pinned_or_refused
+    from fleetmap.align.types import AlignResult
+    from fleetmap.correspondences import Correspondences
+    from fleetmap.geometry import apply, displacement_rms
+
+    rng, T_true, slid, box, probe = _pulled_scene(3, 0.13)
+    p = AlignParams()
+    X = rng.uniform(0, 1, (1500, 3)) * box
+    Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
+    Y[:25] = apply(T_true, X[:25]) + rng.normal(0, 0.01, (25, 3))
+    R = Correspondences(X, Y, np.zeros(1500, int))
+    asked = []
+
+    def follow(T_near):  # the look, merging where it is asked
+        asked.append(displacement_rms(T_near, T_true, probe))
+        return AlignResult(True, "passed, moved", T_near.copy(), "fpfh+icp+matches")
+
+    def third():
+        return AlignResult(True, "passed on the maps' geometry", slid.copy(), "fpfh+icp")
+
+    out = pinned_or_refused(third(), R, probe, p, follow=follow)
+    assert out.merged and out.method == "fpfh+icp+matches", out.reason
+    assert displacement_rms(out.T_a_b, T_true, probe) < 0.02 and asked[0] < 0.02, asked
+    assert "geometry led 0.13 m from here" in out.reason and " against 0 within" in out.reason
+    out = pinned_or_refused(third(), R, probe, p, follow=lambda T_near: None)
+    assert not out.merged and "agree better" in out.reason, out.reason
+    back_to_slid = lambda T_near: AlignResult(True, "passed", slid.copy(), "fpfh")  # noqa: E731
+    out = pinned_or_refused(third(), R, probe, p, follow=back_to_slid)
+    assert not out.merged and "agree better" in out.reason, out.reason
+
+
 def test_a_place_matched_several_times_is_counted_once_by_the_pinning():
     """`pinning.pinned_or_refused`'s floor in places (`validation.distinct`): a HoloLens
     revisit's right third-look merge (3.5 cm) had 3 raw matches at it and 8 at an
