@@ -111,21 +111,37 @@ def pinned_or_refused(
     space is 0.55 and from which ICP returns to within 7 mm of the merge; docs/ALIGNER.md,
     session 34). `follow` (`geometric_look.follow` on the pair): where the matches pull the
     merge to a place nearby that the look would merge too and that they pin in turn, the
-    merge moves there instead of being refused (session 53)."""
+    merge moves there instead of being refused (`moved_by_pull`; session 53)."""
     if not third.merged:
         return third
-    floor = p.min_inliers // 2
-    why, T_near = pull(third.T_a_b, R, probe, p, floor, back)
-    moved = follow(T_near) if why and follow is not None else None
-    if moved is not None and moved.merged and not unpinned(moved.T_a_b, R, probe, p, floor, back):
-        led = displacement_rms(moved.T_a_b, third.T_a_b, probe)
-        moved.reason += f"; the maps' geometry led {led:.2f} m from here, where {why.split(':')[0]}"
-        third, why = moved, ""
+    why, moved = moved_by_pull(third.T_a_b, R, probe, p, follow, p.min_inliers // 2, back)
+    third = moved or third
     T = third.T_a_b
     why = why or (outvoted(T, C, probe, p) if C is not None else "")
     if why:
         third.merged, third.reason = False, f"{third.reason}, but {why}"
     return third
+
+
+def moved_by_pull(
+    T: np.ndarray,
+    R: Correspondences,
+    probe: np.ndarray,
+    p: AlignParams,
+    follow: Follow | None,
+    floor: int = 0,
+    back: FallsBack | None = None,
+) -> tuple[str, AlignResult | None]:
+    """Why the matches do not pin T (`pull`; "" where they do), or, where they pull it to
+    a place nearby that `follow` merges and that they pin in turn, ("", that merge), its
+    reason naming the pull."""
+    why, T_near = pull(T, R, probe, p, floor, back)
+    moved = follow(T_near) if why and follow is not None else None
+    if moved is None or not moved.merged or unpinned(moved.T_a_b, R, probe, p, floor, back):
+        return why, None
+    led = displacement_rms(moved.T_a_b, T, probe)
+    moved.reason += f"; the maps' geometry led {led:.2f} m from here, where {why.split(':')[0]}"
+    return "", moved
 
 
 def outvoted(T: np.ndarray, C: Correspondences, probe: np.ndarray, p: AlignParams) -> str:

@@ -40,7 +40,7 @@ from fleetmap.align.hypotheses import (
     raw_hypotheses,
     rigid_hypotheses,
 )
-from fleetmap.align.pinning import carried, pinned_or_refused, unpinned
+from fleetmap.align.pinning import carried, moved_by_pull, pinned_or_refused
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.surfaces import grey_correlation
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views
@@ -188,7 +188,8 @@ def _align(
 ) -> AlignResult:
     """C: verified (epipolar) correspondences, R: raw matches of every pair. `pinned`: the
     matches must pin the fit (`pinning.unpinned`), asked of the second look's merges: they
-    rest on the maps' geometry started from a few ASIFT matches. Not of the first look's,
+    rest on the maps' geometry started from a few ASIFT matches (moved where the matches
+    pull them, where the third look merges: `pinning.moved_by_pull`). Not of the first look's,
     where the refinement already follows the matches (`hypotheses.ranked`) and where a
     robot's map that bends is fitted as a whole a few centimetres off where the matched
     views are (`agreeing`: HoloLens walk with 1 deg/m of drift, 65 matches agree with a fit
@@ -229,7 +230,10 @@ def _align(
         _geometry_gate(best, rivals, p, probe, decisive, noisy) if p.use_icp else ""
     ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
     if not out.reason and probe is not None and (pinned or carried(decisive, out.T_a_b, R, p)):
-        out.reason = unpinned(out.T_a_b, R, probe, p)
+        move = (lambda T: follow(T, pair, R, p, depth)) if pinned and p.geometric_look else None
+        out.reason, moved = moved_by_pull(out.T_a_b, R, probe, p, move)
+        if moved is not None:
+            return moved
     if not out.reason and p.use_icp:
         out.reason = _colour_gate(best, clouds, p)
     if out.reason:
