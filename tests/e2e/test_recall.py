@@ -564,10 +564,11 @@ def test_a_merge_the_matches_pull_a_few_cm_moves_there(hololens, tmp_path):
     finds no rigid consensus; the second and third looks both passed the maps' geometry
     7.2 cm (mean map-point error) from the truth, where 20 raw matches agree, against 28
     with an alignment 9 cm from it, and were refused as unpinned through session 52 (the
-    same pair missed in seeds 79 and 81). The third look now follows the pull: that
-    alignment, refined as a basin is, passes the look (firm 0.98, grey levels 0.77) and the
-    matches pin it (`geometric_look.follow`): merged 1.7 cm off. Within 5 cm / 2 deg at B's
-    cameras, by the third look."""
+    same pair missed in seeds 79 and 81). A look's merge now follows the pull where the
+    third look would merge there (`pinning.moved_by_pull`, `geometric_look.follow`): that
+    alignment, refined as a basin is, passes the third look (firm 0.98, grey levels 0.77)
+    and the matches pin it: merged 1.7 cm off, on the second look. Within 5 cm / 2 deg at
+    B's cameras, judged as the third look judges."""
     M = {
         "A": frame(
             [1.6777895965458318, 0.845833605282452, -1.345240419579721],
