@@ -49,24 +49,13 @@ def unpinned(
     p: AlignParams,
     floor: int = 0,
     back: FallsBack | None = None,
-) -> str:
-    """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
-    alignment nearby), or "". With a `floor`, those that agree there must be at least that
-    many distinct places (`validation.distinct` at the voxel): a handful of places, each
-    matched several times, is still a handful. With `back`, a place the maps' geometry
-    refuses and leads back from to T does not count."""
-    return pull(T, R, probe, p, floor, back)[0]
-
-
-def pull(
-    T: np.ndarray,
-    R: Correspondences,
-    probe: np.ndarray,
-    p: AlignParams,
-    floor: int = 0,
-    back: FallsBack | None = None,
 ) -> tuple[str, np.ndarray | None]:
-    """`unpinned`'s reason, and the alignment the matches prefer (None where they pin T)."""
+    """Why the matches do not pin T (`validation.better_nearby`: more of them agree with an
+    alignment nearby), and that alignment; ("", None) where they pin it. With a `floor`,
+    those that agree there must be at least that many distinct places (`validation.distinct`
+    at the voxel): a handful of places, each matched several times, is still a handful.
+    With `back`, a place the maps' geometry refuses and leads back from to T does not
+    count."""
     found = better_nearby(T, R.X, R.Y, probe, p.ransac_tol_m, p.rival_m)
     if found is None:
         return "", None
@@ -132,12 +121,12 @@ def moved_by_pull(
     floor: int = 0,
     back: FallsBack | None = None,
 ) -> tuple[str, AlignResult | None]:
-    """Why the matches do not pin T (`pull`; "" where they do), or, where they pull it to
+    """Why the matches do not pin T (`unpinned`; "" where they do), or, where they pull it to
     a place nearby that `follow` merges and that they pin in turn, ("", that merge), its
     reason naming the pull."""
-    why, T_near = pull(T, R, probe, p, floor, back)
+    why, T_near = unpinned(T, R, probe, p, floor, back)
     moved = follow(T_near) if why and follow is not None else None
-    if moved is None or not moved.merged or unpinned(moved.T_a_b, R, probe, p, floor, back):
+    if moved is None or not moved.merged or unpinned(moved.T_a_b, R, probe, p, floor, back)[0]:
         return why, None
     led = displacement_rms(moved.T_a_b, T, probe)
     moved.reason += f"; the maps' geometry led {led:.2f} m from here, where {why.split(':')[0]}"

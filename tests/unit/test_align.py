@@ -252,6 +252,19 @@ def _pulled_scene(seed: int, shift: float):
     return rng, T_true, slid, box, rng.uniform(0, 1, (300, 3)) * box
 
 
+def _pulled_matches():
+    """(T_true, T_true slid 13 cm, probe points, raw matches): 1,500 matches of which 25
+    agree with the truth and none with the slid alignment (`_pulled_scene`)."""
+    from fleetmap.correspondences import Correspondences
+    from fleetmap.geometry import apply
+
+    rng, T_true, slid, box, probe = _pulled_scene(3, 0.13)
+    X = rng.uniform(0, 1, (1500, 3)) * box
+    Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
+    Y[:25] = apply(T_true, X[:25]) + rng.normal(0, 0.01, (25, 3))
+    return T_true, slid, probe, Correspondences(X, Y, np.zeros(1500, int))
+
+
 def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
     """`pinning.pinned_or_refused`'s `back` (`geometric_look.falls_back` in the pipeline):
     the alignment the matches prefer near a third-look merge is handed to it, and where the
@@ -260,15 +273,10 @@ def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
     above)."""
     from fleetmap.align.pinning import pinned_or_refused
     from fleetmap.align.types import AlignResult
-    from fleetmap.correspondences import Correspondences
-    from fleetmap.geometry import apply, displacement_rms
+    from fleetmap.geometry import displacement_rms
 
-    rng, T_true, slid, box, probe = _pulled_scene(3, 0.13)
+    T_true, slid, probe, R = _pulled_matches()
     p = AlignParams()
-    X = rng.uniform(0, 1, (1500, 3)) * box
-    Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
-    Y[:25] = apply(T_true, X[:25]) + rng.normal(0, 0.01, (25, 3))
-    R = Correspondences(X, Y, np.zeros(1500, int))
     asked = []
 
     def back(T_near, T):
@@ -293,15 +301,10 @@ def test_a_merge_the_matches_pull_moves_where_the_look_would_merge_too():
     place it returns is pulled in turn, the merge is refused as before."""
     from fleetmap.align.pinning import pinned_or_refused
     from fleetmap.align.types import AlignResult
-    from fleetmap.correspondences import Correspondences
-    from fleetmap.geometry import apply, displacement_rms
+    from fleetmap.geometry import displacement_rms
 
-    rng, T_true, slid, box, probe = _pulled_scene(3, 0.13)
+    T_true, slid, probe, R = _pulled_matches()
     p = AlignParams()
-    X = rng.uniform(0, 1, (1500, 3)) * box
-    Y = rng.uniform(0, 1, (1500, 3)) * box + T_true[:3, 3]
-    Y[:25] = apply(T_true, X[:25]) + rng.normal(0, 0.01, (25, 3))
-    R = Correspondences(X, Y, np.zeros(1500, int))
     asked = []
 
     def follow(T_near):  # the look, merging where it is asked
