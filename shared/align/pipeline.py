@@ -215,15 +215,8 @@ def _align(
         best, rivals, probe = max(hyps, key=lambda h: h.support), [], None
         method = "rigid"
     inl = agreeing(best.T_a_b, R, p.ransac_tol_m)
-    out = AlignResult(
-        False,
-        "",
-        best.T_a_b,
-        method,
-        inliers=int(inl.sum()),
-        fitness=best.fitness,
-        hypotheses=[h.summary() for h in [best, *rivals]],
-    )
+    out = AlignResult(False, "", best.T_a_b, method, inliers=int(inl.sum()), fitness=best.fitness)
+    out.hypotheses = [h.summary() for h in [best, *rivals]]
     decisive = p.use_icp and _decisive(best, clouds, p)
     need = p.min_inliers // 2 if decisive else p.min_inliers
     out.reason = (
