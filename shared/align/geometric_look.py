@@ -281,7 +281,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
     return settle(win, R, pair, p, voxel, floor, f"{len(found)} basins ({win.seeds} seeds)")
 
 
-def follow(T_near: np.ndarray, pair, R, p: AlignParams, depth: float) -> AlignResult | None:
+def follow(T_near: np.ndarray, pair, p: AlignParams, depth: float) -> AlignResult | None:
     """The look's merge moved to where the raw matches pull it (`pinning.pinned_or_refused`):
     the alignment they prefer near the merge, refined as a basin is (`refine`) and judged as
     the look judges (`judge`); None where it does not pass. Not refined further as `settle`

@@ -86,7 +86,7 @@ def align_views(
     if not res.merged and p.use_icp and p.geometric_look:
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
         back = lambda T_near, T: falls_back(T_near, T, pair, p, depth)  # noqa: E731
-        move = lambda T_near: follow(T_near, pair, R, p, depth)  # noqa: E731
+        move = lambda T_near: follow(T_near, pair, p, depth)  # noqa: E731
         third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back, move)
         if third.merged:
             res = third
@@ -223,7 +223,7 @@ def _align(
         _geometry_gate(best, rivals, p, probe, decisive, noisy) if p.use_icp else ""
     ) or _match_gate(out, R, inl, p, p.spread_needed(depth), need)
     if not out.reason and probe is not None and (pinned or carried(decisive, out.T_a_b, R, p)):
-        move = (lambda T: follow(T, pair, R, p, depth)) if pinned and p.geometric_look else None
+        move = (lambda T: follow(T, pair, p, depth)) if pinned and p.geometric_look else None
         out.reason, moved = moved_by_pull(out.T_a_b, R, probe, p, move)
         if moved is not None:
             return moved
