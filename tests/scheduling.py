@@ -87,6 +87,9 @@ COST_S = {
     "test_a_basin_depth_holds_short_of_the_place_is_carried_there_by_colour": 55,
     # session 53's (alone, quiet: 70 s)
     "tests/e2e/test_recall.py::test_a_merge_the_matches_pull_a_few_cm_moves_there": 80,
+    # session 54's (a run of the recall tests on two workers: 53 s)
+    "tests/e2e/test_recall.py::"
+    "test_a_third_look_merge_through_a_d435_is_refined_on_depth_not_colour": 60,
     "tests/e2e/test_demo_fleet.py": 33,
     "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 32,
     "tests/e2e/test_recall.py::test_two_places_at_desk_scale_stay_unmerged": 29,

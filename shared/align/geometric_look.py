@@ -28,6 +28,7 @@ views show at each depth (`GeometricLook.noise_k`, `fleetmap.depth_noise`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -301,12 +302,17 @@ def follow(T_near: np.ndarray, pair, p: AlignParams, depth: float) -> AlignResul
 
 def settle(win: Judged, R, pair, p: AlignParams, voxel: float, floor, found: str) -> AlignResult:
     """The look's merge at a basin that passed (`win`): refined as the first look refines
-    its winner (`hypotheses.choose`: the raw matches `R` choose between the refinements where
-    they can tell), kept unrefined where the refinement slides off what passed, refused where
-    it slides as far as a rival. `found`: how the basin was found, for the reason."""
+    its winner (`hypotheses.choose`), on depth alone, kept unrefined where the refinement
+    slides off what passed, refused where it slides as far as a rival. `found`: how the
+    basin was found, for the reason. Not by coloured ICP: this look's evidence is the maps'
+    depth, and few raw matches are left to choose between refinements: of the 13 merges of
+    five recall draws, the 4 refined by colour (HoloLens through a D435's noise) stood
+    5.6-10.6 cm off, point-to-plane from the same basins 3.2-6.5 (docs/ALIGNER.md, session
+    54)."""
     look, clouds, seen = p.geometric, pair.clouds(), pair.seen()
     probe = probe_points(clouds[1].at(voxel))
-    h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, p, pair.memo)[0]
+    on_depth = dataclasses.replace(p, colour_icp=False)
+    h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, on_depth, pair.memo)[0]
     refined = judge(h.T_a_b, clouds, seen, voxel, floor)
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
         slid = beyond_rivals(h.T_a_b, win.T_a_b, probe, p)

@@ -585,3 +585,29 @@ def test_a_merge_the_matches_pull_a_few_cm_moves_there(hololens, tmp_path):
     fit, err = merge_windows(tmp_path, a, b, 0, T, seen_as, other=False, map_frames=M)
     merged_near_truth(fit, err, "fpfh")
     assert "moved where the raw matches agree" in fit["reason"], fit
+
+
+def test_a_third_look_merge_through_a_d435_is_refined_on_depth_not_colour(hololens, tmp_path):
+    """hl_a frames 45-105 and hl_b 105-165 (18% of B shared) through a D435's noise (the
+    room from 2.5-5 m), in recall seed 81's map frames: both image looks refuse, and the
+    third look's basin passes (firm 0.97, grey levels 0.52). Through session 53 its merge
+    was refined by coloured ICP, chosen over point-to-plane by `hypotheses.ranked` with no
+    match to tell them apart: 6.8 cm (mean map-point error) from the truth, loose, where
+    point-to-plane from the same basin stood 3.2 cm. The look now refines on depth alone
+    (`geometric_look.settle`): merged within 5 cm / 2 deg at B's cameras."""
+    M = {
+        "A": frame(
+            [-0.19711784077443004, -0.29228087984037715, 2.899374530764923],
+            [-1.4579654493234848, -4.795498419865224, 1.4270225303866626],
+        ),
+        "B": frame(
+            [-1.200230611615194, 1.3235957275236614, 0.10455985425096362],
+            [-3.5620968081467232, -3.717595654930715, -1.1188725188308957],
+        ),
+    }
+    a, b = (hololens / "hl_a", slice(45, 105)), (hololens / "hl_b", slice(105, 165))
+    T = np.loadtxt(hololens / "T_a_b.txt")
+    fit, err = merge_windows(tmp_path, a, b, 0, T, (1.0, D435_SIGMA_1M), other=False, map_frames=M)
+    merged_near_truth(fit, err, "fpfh")
+    assert fit["method"] == "fpfh+icp+icp", fit
+    assert mean_map_error(tmp_path, true_transform(M, T, 1.0), 1.0) < 0.05, fit
