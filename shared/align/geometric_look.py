@@ -28,16 +28,21 @@ views show at each depth (`GeometricLook.noise_k`, `fleetmap.depth_noise`).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-from fleetmap.align.hypotheses import beyond_rivals, choose, colour_icp, probe_points
+from fleetmap.align.hypotheses import (
+    beyond_rivals,
+    colour_icp,
+    depth_refinement,
+    once,
+    probe_points,
+)
 from fleetmap.align.manhattan import manhattan_starts
 from fleetmap.align.surfaces import grey_correlation, relief
-from fleetmap.align.types import AlignParams, AlignResult, GeometricLook, Hypothesis
+from fleetmap.align.types import AlignParams, AlignResult, GeometricLook
 from fleetmap.geometry import apply, displacement_rms, invert
 from fleetmap.mapcloud import REG, SEEDED, free_space_check, icp, overlap_fitness
 
@@ -251,11 +256,9 @@ def blurred(blur: float, voxel: float, depth: float) -> str:
     )
 
 
-def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
+def geometric_look(pair, p: AlignParams, depth: float) -> AlignResult:
     """Align the pair's views on their fused depth alone (`basins`), judged by `judge`, with
-    `p.geometric`'s settings. `pair`: the pipeline's `_PairClouds`; R: the raw matches
-    (they choose between the winner's refinements where they can tell, as in
-    `hypotheses.choose`)."""
+    `p.geometric`'s settings. `pair`: the pipeline's `_PairClouds`."""
     look, voxel = p.geometric, look_voxel(p, depth)
     clouds = pair.clouds()
     few = min(len(c.at(voxel).points) for c in clouds)
@@ -279,7 +282,7 @@ def geometric_look(pair, R, p: AlignParams, depth: float) -> AlignResult:
         far = beyond_rivals(j.T_a_b, win.T_a_b, probe, p)
         if far:
             return AlignResult(False, f"ambiguous: another alignment {far} away passes too")
-    return settle(win, R, pair, p, voxel, floor, f"{len(found)} basins ({win.seeds} seeds)")
+    return settle(win, pair, p, voxel, floor, f"{len(found)} basins ({win.seeds} seeds)")
 
 
 def follow(T_near: np.ndarray, pair, p: AlignParams, depth: float) -> AlignResult | None:
@@ -300,31 +303,31 @@ def follow(T_near: np.ndarray, pair, p: AlignParams, depth: float) -> AlignResul
     return merged(moved, "fpfh+icp+matches", "moved where the raw matches agree")
 
 
-def settle(win: Judged, R, pair, p: AlignParams, voxel: float, floor, found: str) -> AlignResult:
-    """The look's merge at a basin that passed (`win`): refined as the first look refines
-    its winner (`hypotheses.choose`), on depth alone, kept unrefined where the refinement
-    slides off what passed, refused where it slides as far as a rival. `found`: how the
-    basin was found, for the reason. Not by coloured ICP: this look's evidence is the maps'
-    depth, and few raw matches are left to choose between refinements: of the 13 merges of
-    five recall draws, the 4 refined by colour (HoloLens through a D435's noise) stood
-    5.6-10.6 cm off, point-to-plane from the same basins 3.2-6.5 (docs/ALIGNER.md, session
-    54)."""
+def settle(win: Judged, pair, p: AlignParams, voxel: float, floor, found: str) -> AlignResult:
+    """The look's merge at a basin that passed (`win`): refined on depth alone as the first
+    look refines its winner (`hypotheses.depth_refinement`), kept unrefined where the
+    refinement slides off what passed, refused where it slides as far as a rival. `found`:
+    how the basin was found, for the reason. This look's evidence is the maps' depth, and
+    few raw matches are left to choose between refinements (docs/ALIGNER.md, session 54):
+    - not by coloured ICP: of the 13 merges of five recall draws, the 4 refined by colour
+      (HoloLens through a D435's noise) stood 5.6-10.6 cm off, point-to-plane from the
+      same basins 3.2-6.5;
+    - not from `choose`'s coarse ICP, whose reach (4 coarse voxels) is wider than the ICP
+      that settled the basin: it slid a passing basin 7.8 cm from the truth to 29 cm, and
+      the pair was refused (recall seed 83, 18% shared; 6.0 cm without it)."""
     look, clouds, seen = p.geometric, pair.clouds(), pair.seen()
     probe = probe_points(clouds[1].at(voxel))
-    on_depth = dataclasses.replace(p, colour_icp=False)
-    h = choose([Hypothesis(win.T_a_b, 0, "fpfh")], R, *seen, clouds, on_depth, pair.memo)[0]
-    refined = judge(h.T_a_b, clouds, seen, voxel, floor)
+    T = once(pair.memo, "on depth", win.T_a_b, lambda T: depth_refinement(T, clouds, p))
+    refined, method = judge(T, clouds, seen, voxel, floor), "fpfh+icp+icp"
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
-        slid = beyond_rivals(h.T_a_b, win.T_a_b, probe, p)
+        slid = beyond_rivals(T, win.T_a_b, probe, p)
         if slid:  # unless it slid as far as a rival: no basin holds there
             return AlignResult(
                 False, f"the best alignment does not hold: refined, it slid {slid} to "
                 f"where the gate refuses it ({refined.why_not(look, p)})",
             )  # fmt: skip
-        h.T_a_b, refined = win.T_a_b, win
-    out = merged(refined, "fpfh+icp" + h.source.removeprefix("fpfh"), found)
-    out.hypotheses = [h.summary()]
-    return out
+        refined, method = win, "fpfh+icp"
+    return merged(refined, method, found)
 
 
 def merged(j: Judged, method: str, found: str) -> AlignResult:

@@ -295,15 +295,21 @@ def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarra
     coarser colour scale's cloud, the last on the fine one), and multi-scale coloured ICP
     where both clouds have colour, from T0. Returns [(T_a_b, "+icp" or "+colour")]."""
     v1 = p.voxel_m
-    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1, normals=False)  # B's: the sources
-    vm = 4 * v1 / 3
-    T, _, _ = icp(clouds[1].at(vm, normals=False), clouds[0].at(vm), T0, (3 * v1, 1.5 * v1), 20)
-    T, _, _ = icp(cb1, ca1, T, distances=(v1,), iterations=20)
-    refined = [(T, "+icp")]
+    ca1, cb1 = clouds[0].at(v1), clouds[1].at(v1, normals=False)
+    refined = [(depth_refinement(T0, clouds, p), "+icp")]
     if not (p.colour_icp and ca1.has_colors() and cb1.has_colors()):
         return refined
-    T = colour_icp(T0, clouds, (vm, 2 * v1 / 3), 20)
+    T = colour_icp(T0, clouds, (4 * v1 / 3, 2 * v1 / 3), 20)
     return refined if T is None else [*refined, (T, "+colour")]
+
+
+def depth_refinement(T0: np.ndarray, clouds, p: AlignParams) -> np.ndarray:
+    """T0 (T_a_b) refined by point-to-plane ICP of B's cloud onto A's: the wide distances
+    on the coarser colour scale's cloud (4/3 of the gate's voxel), the last on the gate's."""
+    v1 = p.voxel_m
+    vm = 4 * v1 / 3
+    T, _, _ = icp(clouds[1].at(vm, normals=False), clouds[0].at(vm), T0, (3 * v1, 1.5 * v1), 20)
+    return icp(clouds[1].at(v1, normals=False), clouds[0].at(v1), T, (v1,), 20)[0]
 
 
 def colour_icp(T: np.ndarray, clouds, scales, iterations: int) -> np.ndarray | None:

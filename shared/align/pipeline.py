@@ -87,7 +87,7 @@ def align_views(
         probe = probe_points(pair.clouds()[1].at(p.coarse_voxel_m, normals=False))
         back = lambda T_near, T: falls_back(T_near, T, pair, p, depth)  # noqa: E731
         move = lambda T_near: follow(T_near, pair, p, depth)  # noqa: E731
-        third = pinned_or_refused(geometric_look(pair, R, p, depth), R, probe, p, C, back, move)
+        third = pinned_or_refused(geometric_look(pair, p, depth), R, probe, p, C, back, move)
         if third.merged:
             res = third
         else:
