@@ -37,7 +37,6 @@ from fleetmap.align.hypotheses import (
     beyond_rivals,
     colour_icp,
     depth_refinement,
-    once,
     probe_points,
 )
 from fleetmap.align.manhattan import manhattan_starts
@@ -317,7 +316,7 @@ def settle(win: Judged, pair, p: AlignParams, voxel: float, floor, found: str) -
       the pair was refused (recall seed 83, 18% shared; 6.0 cm without it)."""
     look, clouds, seen = p.geometric, pair.clouds(), pair.seen()
     probe = probe_points(clouds[1].at(voxel))
-    T = once(pair.memo, "on depth", win.T_a_b, lambda T: depth_refinement(T, clouds, p))
+    T = depth_refinement(win.T_a_b, clouds, p)
     refined, method = judge(T, clouds, seen, voxel, floor), "fpfh+icp+icp"
     if not refined.passes(look, p):  # the refinement slid off what passed: keep the basin,
         slid = beyond_rivals(T, win.T_a_b, probe, p)

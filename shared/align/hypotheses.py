@@ -192,7 +192,7 @@ def choose(
     best = top[0]
     if refused_whatever_refined(best, p, noisy):
         return best, top[1:]
-    refined = once(memo, ("refine", p.colour_icp), best.T_a_b, lambda T: _refinements(T, clouds, p))
+    refined = once(memo, "refine", best.T_a_b, lambda T: _refinements(T, clouds, p))
     refined = [(T, best.source + how) for T, how in refined]
     for T, source in ranked(refined, R, cb1, ca1, p):
         dt, dr = displacement_rms(T, best.T_a_b, probe), transform_error(T, best.T_a_b)[1]
@@ -217,8 +217,7 @@ def _rivals(best, others, R: Correspondences, clouds, fine, probe, p: AlignParam
     kept = []
     for h in others:
         if beyond_rivals(h.T_a_b, best.T_a_b, probe, p) and h.score >= p.ambiguity * best.score:
-            kind = ("refine", p.colour_icp)  # the refinements depend on it
-            refined = once(memo, kind, h.T_a_b, lambda T: _refinements(T, clouds, p))
+            refined = once(memo, "refine", h.T_a_b, lambda T: _refinements(T, clouds, p))
             T = ranked([(T, h.source + how) for T, how in refined], R, *fine, p)[0][0]
             if not beyond_rivals(T, best.T_a_b, probe, p):
                 log.info("a rival refined into the winner's place: one basin")
@@ -262,9 +261,8 @@ def ranked(cands: list[tuple[np.ndarray, str]], R: Correspondences, cb1, ca1, p:
     return [cands[k] for k in tied + rest]
 
 
-def once(memo: dict, kind, T: np.ndarray, make):
-    """memo[(kind, T)], made by make(T) the first time: make runs once per transform.
-    `kind`: what is made (a string, or a tuple where the settings it depends on vary)."""
+def once(memo: dict, kind: str, T: np.ndarray, make):
+    """memo[(kind, T)], made by make(T) the first time: make runs once per transform."""
     key = (kind, np.asarray(T, np.float64).tobytes())
     if key not in memo:
         memo[key] = make(T)
