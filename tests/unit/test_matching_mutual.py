@@ -62,11 +62,28 @@ def test_torch_products_give_the_whole_matrix_matching(monkeypatch):
         n, m = rng.integers(2, 40, size=2)
         levels = rng.choice([0, 1, 2, 127, 128, 254, 255], size=(n + m, 6))
         da, db = levels[:n].astype(np.uint8), levels[n:].astype(np.uint8)
-        assert matching._products(da, db, da.astype(np.float32), db.astype(np.float32)) is not None
+        assert matching._products(da, db) is not None
         found = match_descriptors_at(da, db, (0.8, 1.0))
         for ratio, (ia, ib) in zip((0.8, 1.0), found, strict=True):
             ja, jb = _matches_from_the_whole_matrix(da, db, ratio)
             assert np.array_equal(ia, ja) and np.array_equal(ib, jb)
+
+
+@pytest.mark.parametrize("length", [128, 258])
+def test_torch_products_are_exact_at_the_extremes(monkeypatch, length):
+    """The 8-bit product's shift and corrections hold to the integer for SIFT's 128 and the
+    longest descriptors (258) at both ends of the range: 0 . 255, 255 . 255, 128 . 127."""
+    if matching._torch() is None:
+        pytest.skip("torch is not installed (a robot's install): numpy's product is used")
+    monkeypatch.setattr(matching, "TORCH_MIN_ENTRIES", 1)
+    rng = np.random.default_rng(7)
+    ends = np.array([0, 255, 128, 127], np.uint8)
+    da = np.concatenate([np.repeat(ends[:, None], length, 1), rng.integers(0, 256, (5, length))])
+    db = np.concatenate([np.repeat(ends[:, None], length, 1), rng.integers(0, 256, (6, length))])
+    da, db = da.astype(np.uint8), db.astype(np.uint8)
+    S = matching._products(da, db)(slice(0, len(da)))
+    assert S.dtype == np.float32
+    assert np.array_equal(S.astype(np.int64), da.astype(np.int64) @ db.astype(np.int64).T)
 
 
 def _distinct_from_the_whole_matrix(da, db, kb, radius, ratio):
