@@ -192,41 +192,10 @@ def look_voxel(p: AlignParams, depth: float) -> float:
     return float(np.clip(p.geometric.voxel_rel * depth, p.voxel_m, 5 * p.voxel_m))
 
 
-def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: float) -> bool:
-    """Whether the maps' geometry refuses an alignment T_near that the matches prefer near a
-    merge T and leads back from it to T or to no place this look would merge
-    (`pinning.pinned_or_refused`): its firm free-space consistency (`judge`) under even the
-    first look's bar (`min_consistency`, 0.7, the laxest the gate asks; the look's own is
-    0.9), and ICP from it (`refine`, point-to-plane at half a voxel) landing within the
-    map's own voxel (`voxel_m`) of T or where the free space is firm under the look's own
-    bar, judged as the look judges (`firm_ways` at the robots' depth noise).
-
-    Where the surfaces slide along each other (what the matches' pinning guards against), an
-    alignment along the slide keeps its free space and ICP leaves it near where it is: a
-    HoloLens pair through a D435's noise merged 11.8 cm off, the matches preferring an
-    alignment 13 cm away at firm 0.89 whose refinement lands 7 cm from the merge; SUN3D
-    windows 10.6 cm off, the pull at firm 0.82, its refinement 21 cm away; another HoloLens
-    pair through that noise, 6.4-7.0 cm off, the pull at firm 0.84-0.88, its refinement just
-    beyond the voxel. At a right merge (HoloLens, 18% shared, 2.9 cm) the matches preferred
-    one 21 cm off at firm 0.52-0.58 (ten pairs of map frames), whose refinement lands 5-19
-    mm from the merge (docs/ALIGNER.md, session 34). A HoloLens pair at 0.4 of its size,
-    B another camera, merged 3.0-4.3 cm off (firm 0.96-0.97 at the noise, the truth's
-    too), had the matches prefer one 55 cm off at firm 0.21-0.25 whose refinement slid
-    17-27 cm off, to firm 0.51 (no noise floor) or 0.85 (at it) (session 40)."""
-    if firm_at_noise(T_near, pair, p, depth) >= p.min_consistency:
-        return False
-    voxel, clouds = look_voxel(p, depth), pair.clouds()
-    probe = probe_points(clouds[1].at(voxel))
-    T_back = refine(T_near, clouds, voxel)
-    if displacement_rms(T_back, T, probe) < p.voxel_m:
-        return True
-    return firm_at_floor(T_back, pair, p, depth) < p.geometric.min_consistency
-
-
 def firm_at_noise(T: np.ndarray, pair, p: AlignParams, depth: float) -> float:
     """T's firm free-space consistency at this look's voxel (`firm_ways`, as `judge` counts
     it, at half of it: 2.5% of the scene's depth), the smaller way: without the look's noise
-    floor, the margin `unfirm` and `falls_back` were measured at (docs/ALIGNER.md, session
+    floor, the margin `unfirm` and `pulls.falls_back` were measured at (docs/ALIGNER.md, session
     38)."""
     return min(firm_ways(T, pair.clouds(), pair.seen(), look_voxel(p, depth)))
 
@@ -282,24 +251,6 @@ def geometric_look(pair, p: AlignParams, depth: float) -> AlignResult:
         if far:
             return AlignResult(False, f"ambiguous: another alignment {far} away passes too")
     return settle(win, pair, p, voxel, floor, f"{len(found)} basins ({win.seeds} seeds)")
-
-
-def follow(T_near: np.ndarray, pair, p: AlignParams, depth: float) -> AlignResult | None:
-    """The look's merge moved to where the raw matches pull it (`pinning.pinned_or_refused`):
-    the alignment they prefer near the merge, refined as a basin is (`refine`) and judged as
-    the look judges (`judge`); None where it does not pass. Not refined further as `settle`
-    refines: there the depth leads back to where the geometry led. Through a D435's noise a
-    HoloLens pair (51% shared) passed the look 7.2 cm off, where 28 raw matches agreed with
-    an alignment 9 cm from it against 20: that alignment, 3.6 cm from the truth, refined
-    lands 1.7 cm from it and passes (firm 0.98, grey levels 0.77), and no alignment nearby
-    is preferred there; `settle`'s refinement of it slid back to the 7.2 cm (docs/ALIGNER.md,
-    session 53)."""
-    look, voxel = p.geometric, look_voxel(p, depth)
-    clouds, floor = pair.clouds(), pair.noise_floor(look.noise_k)
-    moved = judge(refine(T_near, clouds, voxel), clouds, pair.seen(), voxel, floor)
-    if not moved.passes(look, p):
-        return None
-    return merged(moved, "fpfh+icp+matches", "moved where the raw matches agree")
 
 
 def settle(win: Judged, pair, p: AlignParams, voxel: float, floor, found: str) -> AlignResult:

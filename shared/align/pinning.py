@@ -6,7 +6,7 @@ other while the free space stays consistent. The raw matches say where they agre
 is refused where they prefer an alignment nearby (`unpinned`) or, for the third look, where
 the verified matches agree on one far away (`outvoted`). For the third look the maps'
 geometry has its say on the pull: a place it refuses and leaves for the merge
-(`geometric_look.falls_back`) does not refuse it.
+(`pulls.falls_back`) does not refuse it.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ from fleetmap.align.validation import better_nearby, distinct, outnumbers
 from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import displacement_rms, residuals
 
-#: `falls_back(T_near, T)` (`geometric_look.falls_back` on the pair): whether the maps'
+#: `falls_back(T_near, T)` (`pulls.falls_back` on the pair): whether the maps'
 #: geometry refuses the alignment the matches prefer near a merge T and leads back to T
 FallsBack = Callable[[np.ndarray, np.ndarray], bool]
 
-#: `follow(T_near)` (`geometric_look.follow` on the pair): the look's merge moved to the
+#: `follow(T_near)` (`pulls.follow` on the pair): the look's merge moved to the
 #: alignment the matches prefer nearby, or None where the look would not merge it there
 Follow = Callable[[np.ndarray], AlignResult | None]
 
@@ -93,12 +93,12 @@ def pinned_or_refused(
     cm at its 2.7 m) passed free space and colour 12 cm off, while 27 matches agreed with an
     alignment 13 cm from it (10 from the truth) against 9 with it (docs/ALIGNER.md, session
     26). `C`, the verified matches: refused too where they agree on an alignment far from it
-    (`outvoted`). `back` (`geometric_look.falls_back` on the pair): a pull to a place the
+    (`outvoted`). `back` (`pulls.falls_back` on the pair): a pull to a place the
     maps' geometry refuses and leads back from to the merge does not refuse it (a HoloLens
     pair, 18% shared, merged about 3 cm from the truth, was refused through session 33 by
     12 raw matches at seven places agreeing with an alignment 21 cm off, whose firm free
     space is 0.55 and from which ICP returns to within 7 mm of the merge; docs/ALIGNER.md,
-    session 34). `follow` (`geometric_look.follow` on the pair): where the matches pull the
+    session 34). `follow` (`pulls.follow` on the pair): where the matches pull the
     merge to a place nearby that the look would merge too and that they pin in turn, the
     merge moves there instead of being refused (`moved_by_pull`; session 53)."""
     if not third.merged:

@@ -24,13 +24,7 @@ import time
 
 import numpy as np
 
-from fleetmap.align.geometric_look import (
-    falls_back,
-    firm_at_floor,
-    follow,
-    geometric_look,
-    unfirm,
-)
+from fleetmap.align.geometric_look import firm_at_floor, geometric_look, unfirm
 from fleetmap.align.hypotheses import (
     choose,
     consistency_at_noise,
@@ -41,6 +35,7 @@ from fleetmap.align.hypotheses import (
     rigid_hypotheses,
 )
 from fleetmap.align.pinning import carried, moved_by_pull, pinned_or_refused
+from fleetmap.align.pulls import falls_back, follow
 from fleetmap.align.second_look import affine_matches
 from fleetmap.align.surfaces import grey_correlation
 from fleetmap.align.types import DEFAULT_ALIGN, AlignParams, AlignResult, unique_views

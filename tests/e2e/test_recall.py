@@ -249,7 +249,7 @@ def test_room_a_pull_the_maps_geometry_refuses_is_merged(hololens, tmp_path):
     dozen raw matches, ASIFT's among them, at six or more places agree with an alignment
     some 20 cm away against half as many at the merge. The maps' geometry refuses that
     alignment (firm 0.52-0.58) and ICP started there lands 0.5-1.9 cm from the merge
-    (`geometric_look.falls_back`): merged in all 8 since, 3.9-4.3 cm / 0.4 deg at B's
+    (`pulls.falls_back`): merged in all 8 since, 3.9-4.3 cm / 0.4 deg at B's
     cameras. Within 5 cm / 2 deg of the truth."""
     fit, err = hololens_windows(tmp_path, hololens, (60, 120), (30, 90), 71)
     merged_near_truth(fit, err, "fpfh")
@@ -262,7 +262,7 @@ def test_room_a_pull_whose_icp_finds_no_place_is_merged(hololens, tmp_path):
     the pinning refused it: 24 raw matches agree with an alignment 55 cm off (at the
     recording's size) against 12 at the merge. The maps' geometry refuses that alignment
     (firm 0.21) and ICP from it lands 17 cm off, where the look's own judging refuses too
-    (firm 0.85 at the noise, need 0.9): neither is a place (`geometric_look.falls_back`).
+    (firm 0.85 at the noise, need 0.9): neither is a place (`pulls.falls_back`).
     Within 5 cm / 2 deg of the truth at the recording's size."""
     fit, err = hololens_windows(tmp_path, hololens, (75, 135), (120, 180), 61, (0.4, 0.0))
     merged_near_truth(fit, err, "fpfh")
@@ -565,7 +565,7 @@ def test_a_merge_the_matches_pull_a_few_cm_moves_there(hololens, tmp_path):
     7.2 cm (mean map-point error) from the truth, where 20 raw matches agree, against 28
     with an alignment 9 cm from it, and were refused as unpinned through session 52 (the
     same pair missed in seeds 79 and 81). A look's merge now follows the pull where the
-    third look would merge there (`pinning.moved_by_pull`, `geometric_look.follow`): that
+    third look would merge there (`pinning.moved_by_pull`, `pulls.follow`): that
     alignment, refined as a basin is, passes the third look (firm 0.98, grey levels 0.77)
     and the matches pin it: merged 1.7 cm off, on the second look. Within 5 cm / 2 deg at
     B's cameras, judged as the third look judges."""
@@ -611,3 +611,29 @@ def test_a_third_look_merge_through_a_d435_is_refined_on_depth_not_colour(holole
     merged_near_truth(fit, err, "fpfh")
     assert fit["method"] == "fpfh+icp+icp", fit
     assert mean_map_error(tmp_path, true_transform(M, T, 1.0), 1.0) < 0.05, fit
+
+
+def test_a_pull_the_geometry_returns_from_does_not_refuse_a_room_at_1_5_times(hololens, tmp_path):
+    """hl_a frames 15-75 and hl_b 45-105 (51% of B shared) at 1.5 times their size through a
+    D435's noise, in recall seed 85's map frames: both image looks refuse, the third look's
+    basin passes (firm 0.97, grey levels 0.76), and 17 raw matches against 11 prefer an
+    alignment 16 cm away (12 cm from the truth) at firm 0.83, from which ICP returns to the
+    merge. Through session 54 that pull refused the pair (`pulls.falls_back` let only a pull
+    under firm 0.7 fall back); now merged within 5 cm of the truth (mean map-point error, at
+    the recording's size)."""
+    M = {
+        "A": frame(
+            [0.24251860645131382, 1.4760827598518798, 1.8490519785385229],
+            [0.18411689054182911, -3.142632872442391, -1.8101906789628064],
+        ),
+        "B": frame(
+            [1.0450075325586903, -1.4150652154182783, 1.8394939587451675],
+            [-0.517325341076317, -0.16361326201768556, 1.292417394021614],
+        ),
+    }
+    a, b = (hololens / "hl_a", slice(15, 75)), (hololens / "hl_b", slice(45, 105))
+    T = np.loadtxt(hololens / "T_a_b.txt")
+    fit, err = merge_windows(tmp_path, a, b, 0, T, (1.5, D435_SIGMA_1M), other=False, map_frames=M)
+    assert fit["merged"] and fit["method"].startswith("fpfh"), fit
+    assert mean_map_error(tmp_path, true_transform(M, T, 1.5), 1.5) < 0.05, (err, fit)
+    assert err[1] < 2.0, (err, fit)

@@ -266,7 +266,7 @@ def _pulled_matches():
 
 
 def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
-    """`pinning.pinned_or_refused`'s `back` (`geometric_look.falls_back` in the pipeline):
+    """`pinning.pinned_or_refused`'s `back` (`pulls.falls_back` in the pipeline):
     the alignment the matches prefer near a third-look merge is handed to it, and where the
     maps' geometry refuses that alignment and leads back to the merge, the merge stands,
     where it is; where not, it is refused as before (the matches and merge of the test
@@ -294,7 +294,7 @@ def test_a_pull_the_maps_geometry_refuses_and_leaves_does_not_refuse_a_merge():
 
 
 def test_a_merge_the_matches_pull_moves_where_the_look_would_merge_too():
-    """`pinning.pinned_or_refused`'s `follow` (`geometric_look.follow` in the pipeline): the
+    """`pinning.pinned_or_refused`'s `follow` (`pulls.follow` in the pipeline): the
     alignment the matches prefer near a third-look merge 13 cm off (the truth) is handed to
     it, and where the look merges there and the matches pin that place, the merge moves
     there, its reason naming the pull; where the look would not merge there, or where the
