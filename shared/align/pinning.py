@@ -5,8 +5,8 @@ alone, the second look's, the third look's) can slide along surfaces that slide 
 other while the free space stays consistent. The raw matches say where they agree: a merge
 is refused where they prefer an alignment nearby (`unpinned`) or, for the third look, where
 the verified matches agree on one far away (`outvoted`). For the third look the maps'
-geometry has its say on the pull: a place it refuses and leaves for the merge
-(`pulls.falls_back`) does not refuse it.
+geometry has its say on the pull: a place it refuses, or holds less firmly than the merge,
+and leaves for the merge (`pulls.falls_back`) does not refuse it.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import displacement_rms, residuals
 
 #: `falls_back(T_near, T)` (`pulls.falls_back` on the pair): whether the maps'
-#: geometry refuses the alignment the matches prefer near a merge T and leads back to T
+#: geometry leads back to a merge T from the alignment the matches prefer near it
 FallsBack = Callable[[np.ndarray, np.ndarray], bool]
 
 #: `follow(T_near)` (`pulls.follow` on the pair): the look's merge moved to the
