@@ -15,7 +15,7 @@ from fleetmap.align.geometric_look import (
     merged,
     refine,
 )
-from fleetmap.align.hypotheses import probe_points
+from fleetmap.align.hypotheses import once, probe_points
 from fleetmap.align.types import AlignParams, AlignResult
 from fleetmap.geometry import displacement_rms
 
@@ -51,7 +51,7 @@ def falls_back(T_near: np.ndarray, T: np.ndarray, pair, p: AlignParams, depth: f
     firm_near = firm_at_noise(T_near, pair, p, depth)
     voxel, clouds = look_voxel(p, depth), pair.clouds()
     probe = probe_points(clouds[1].at(voxel))
-    T_back = refine(T_near, clouds, voxel)
+    T_back = refined(T_near, pair, voxel)
     if displacement_rms(T_back, T, probe) < p.voxel_m:
         return firm_near < p.min_consistency or firm_near < firm_at_noise(T, pair, p, depth)
     if firm_near >= p.min_consistency:
@@ -71,7 +71,13 @@ def follow(T_near: np.ndarray, pair, p: AlignParams, depth: float) -> AlignResul
     session 53)."""
     look, voxel = p.geometric, look_voxel(p, depth)
     clouds, floor = pair.clouds(), pair.noise_floor(look.noise_k)
-    moved = judge(refine(T_near, clouds, voxel), clouds, pair.seen(), voxel, floor)
+    moved = judge(refined(T_near, pair, voxel), clouds, pair.seen(), voxel, floor)
     if not moved.passes(look, p):
         return None
     return merged(moved, "fpfh+icp+matches", "moved where the raw matches agree")
+
+
+def refined(T_near: np.ndarray, pair, voxel: float) -> np.ndarray:
+    """`refine` of the pull's place, once per place in the pair's memo: `falls_back` asks it
+    first, and `follow` starts from it where the pull did not fall back."""
+    return once(pair.memo, "pull", T_near, lambda T: refine(T, pair.clouds(), voxel))
