@@ -59,70 +59,74 @@ APART = (
 
 _PARTS = "tests/e2e/test_sun3d_alignment.py::test_sun3d_parts_are_merged_right_or_not_at_all"
 
-#: Seconds of the costly groups, by group name: their wall seconds in a full run on two
-#: workers (2026-11-28, 392 tests in 432 s; the recall tests changed after it by their own
-#: runs, the two pinning ones by a clean clone's run of 2026-11-29), which only order them;
-#: the others took under 7 s there. A group's share moves between runs (the feature cache:
-#: whichever test extracts an image first pays for it), and under load the merges' share
-#: grows, so the order is a guide, not a promise. A long test missing here runs after every
-#: listed group: add it.
+#: Seconds of the costly groups, by group name: their wall seconds in a full run of the suite on
+#: two workers (`bash scripts/test.sh --durations=0`, 2026-12-07, 457 tests in 629 s, quiet;
+#: each group's setup, calls and teardown), which only order them; the others took under 7 s
+#: there. A group's share moves between runs (the feature cache: whichever test extracts an
+#: image first pays for it), and under load the merges' share grows, so the order is a guide,
+#: not a promise. A long test missing here runs after every listed group: add it.
 COST_S = {
-    "tests/e2e/test_fleet_drift.py": 105,
-    "tests/e2e/test_live_map.py": 85,
-    "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 48,
-    "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 67,
-    "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 57,
-    "tests/e2e/test_recall.py::test_room_a_pull_whose_icp_finds_no_place_is_merged": 90,
+    "tests/e2e/test_fleet_drift.py": 96,
+    "tests/e2e/test_live_map.py": 78,
+    "tests/e2e/test_demo_fleet.py": 59,
     "tests/e2e/test_recall.py::"
-    "test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_merge": 35,
-    APART[2]: 47,
-    # the two rooms at twice their size (their clouds and lengths, session 45's wall times)
+    "test_a_basin_depth_holds_short_of_the_place_is_carried_there_by_colour": 56,
     "tests/e2e/test_recall.py::"
-    "test_a_room_at_twice_its_size_is_judged_at_lengths_in_proportion": 50,
-    "tests/e2e/test_recall.py::test_a_room_at_twice_its_size_is_merged_on_readings_beyond_6_m": 37,
-    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 25,
-    # session 52's two (a run of the recall tests on two workers, 2026-12-06)
-    "tests/e2e/test_recall.py::test_two_patches_of_one_plane_are_not_a_merge": 90,
+    "test_a_pull_the_geometry_returns_from_does_not_refuse_a_room_at_1_5_times": 55,
     "tests/e2e/test_recall.py::"
-    "test_a_basin_depth_holds_short_of_the_place_is_carried_there_by_colour": 55,
-    # session 53's (alone, quiet: 70 s)
-    "tests/e2e/test_recall.py::test_a_merge_the_matches_pull_a_few_cm_moves_there": 80,
-    # session 54's (a run of the recall tests on two workers: 53 s)
+    "test_a_slide_a_second_look_found_through_a_d435_and_another_camera_is_not_a_merge": 44,
+    "tests/e2e/test_recall.py::test_room_a_pull_whose_icp_finds_no_place_is_merged": 44,
+    "tests/e2e/test_recall.py::test_two_patches_of_one_plane_are_not_a_merge": 40,
+    "tests/process/test_cli.py": 40,
+    "tests/e2e/test_recall.py::test_a_merge_the_matches_pull_a_few_cm_moves_there": 39,
+    "tests/e2e/test_recall.py::test_room_a_pull_the_maps_geometry_refuses_is_merged": 36,
+    f"{_PARTS}[part_a3-part_b3-False]": 30,
+    "tests/e2e/test_recall.py::test_room_a_handful_of_places_pull_elsewhere_is_merged": 27,
     "tests/e2e/test_recall.py::"
-    "test_a_third_look_merge_through_a_d435_is_refined_on_depth_not_colour": 60,
-    # session 55's (alone, quiet: 35 s)
+    "test_a_room_at_twice_its_size_is_judged_at_lengths_in_proportion": 26,
+    "sun3d_merge": 25,
+    "tests/e2e/test_recall.py::test_a_room_at_twice_its_size_is_merged_on_readings_beyond_6_m": 25,
+    APART[2]: 22,
     "tests/e2e/test_recall.py::"
-    "test_a_pull_the_geometry_returns_from_does_not_refuse_a_room_at_1_5_times": 45,
-    "tests/e2e/test_demo_fleet.py": 33,
-    "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 32,
-    "tests/e2e/test_recall.py::test_two_places_at_desk_scale_stay_unmerged": 29,
-    "sun3d_merge": 23,
-    "tests/process/test_place_db_replicas.py": 23,
-    f"{_PARTS}[part_a3-part_b3-False]": 21,
-    "tests/e2e/test_recall.py::test_room_walked_the_other_way_is_merged_on_a_second_look": 19,
+    "test_a_third_look_merge_through_a_d435_is_refined_on_depth_not_colour": 22,
+    "tests/process/test_place_db_replicas.py": 22,
     "tests/e2e/test_recall.py::"
-    "test_lounge_and_study_room_stay_unmerged_when_a_basin_slides_away": 19,
-    "tests/process/test_cli.py": 17,
-    "tests/e2e/test_merge.py::test_merge_hololens_robots_that_revisit_a_kitchen": 15,
-    "tests/e2e/test_recall.py::"
-    "test_room_seen_from_elsewhere_is_merged_on_the_copies_asift_makes": 15,
-    "tests/process/test_chaos.py": 12,
-    APART[0]: 12,
-    "tests/e2e/test_sun3d_alignment.py::test_different_places_are_not_merged": 11,
-    "tests/process/test_fuzz_api.py::test_no_5xx_and_no_hang[place-db]": 9,
-    "tests/unit/test_matching_mutual.py": 9,
-    f"{_PARTS}[part_a1-part_b1-False]": 9,
-    f"{_PARTS}[part_a4-part_b4-True]": 8,
+    "test_a_rival_that_refines_into_the_winners_place_does_not_refuse_a_desk": 21,
+    "tests/e2e/test_recall.py::test_room_seen_across_its_planes_is_merged": 20,
+    "tests/e2e/test_sun3d_alignment.py::test_different_places_are_not_merged": 19,
+    "tests/unit/test_matching_mutual.py": 18,
+    "tests/e2e/test_recall.py::test_two_places_at_desk_scale_stay_unmerged": 17,
+    f"{_PARTS}[part_a1-part_b1-False]": 17,
+    "tests/process/test_reliability.py": 16,
     "tests/e2e/test_recall.py::test_a_desk_seen_from_1_5_times_as_far_through_a_d435_is_merged": 15,
+    "tests/e2e/test_recall.py::test_room_walked_the_other_way_is_merged_on_a_second_look": 14,
+    "sun3d_alignment": 13,
+    "tests/e2e/test_merge.py::test_merge_hololens_robots_that_revisit_a_kitchen": 12,
     "tests/e2e/test_recall.py::"
-    "test_a_room_seen_through_more_noise_than_the_third_look_can_judge_is_not_merged": 15,
-    "tests/e2e/test_recall.py::test_second_look_merges_only_what_its_matches_pin": 8,
-    "tests/process/test_robustness.py": 8,
-    "tests/api/test_live_recall.py": 7,
-    "sun3d_alignment": 7,
-    "tests/e2e/test_recall.py::test_a_desk_seen_from_0_4_m_is_merged_as_from_1_m": 7,
-    "tests/unit/test_manhattan.py": 6,
-    APART[1]: 6,
+    "test_a_room_at_0_4_of_its_size_through_a_d435_and_another_camera_is_not_merged_off": 12,
+    "tests/e2e/test_recall.py::"
+    "test_room_seen_from_elsewhere_is_merged_on_the_copies_asift_makes": 12,
+    "tests/process/test_fuzz_api.py::test_no_5xx_and_no_hang[place-db]": 12,
+    "tests/unit/test_align.py": 12,
+    "tests/api/test_live_recall.py": 11,
+    "tests/e2e/test_recall.py::"
+    "test_a_room_seen_through_more_noise_than_the_third_look_can_judge_is_not_merged": 11,
+    f"{_PARTS}[part_a4-part_b4-True]": 11,
+    "tests/unit/test_manhattan.py": 11,
+    "tests/e2e/test_recall.py::test_unverified_revisit_is_merged_and_another_building_is_not": 10,
+    "tests/process/test_chaos.py": 10,
+    APART[1]: 9,
+    "tests/e2e/test_merge.py::test_merge_simulated_three_robot_fleet": 9,
+    "tests/e2e/test_recall.py::test_a_desk_seen_from_0_4_m_is_merged_as_from_1_m": 9,
+    "tests/e2e/test_recall.py::test_a_slide_along_the_rooms_planes_is_not_a_merge": 9,
+    "tests/e2e/test_recall.py::"
+    "test_lounge_and_study_room_stay_unmerged_when_a_basin_slides_away": 9,
+    "tests/e2e/test_recall.py::test_second_look_merges_only_what_its_matches_pin": 9,
+    "tests/process/test_robustness.py": 9,
+    APART[0]: 8,
+    f"{_PARTS}[part_a0-part_b0-False]": 8,
+    "tests/api/test_live_reliability.py": 7,
+    f"{_PARTS}[part_a2-part_b2-False]": 6,
 }
 
 
