@@ -50,11 +50,9 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
     }
     if not overrides:
         return None
-    from fleetmap.dataset import read_recording
+    from fleetmap.dataset import overridden
 
-    rec = read_recording(robot_dir, topics=_topics(args))  # the files' own size: the flags'
-    base = (rec.file_intrinsics or rec.intrinsics).to_dict()
-    return Intrinsics.from_dict({**base, **overrides})
+    return overridden(robot_dir, overrides, _topics(args))
 
 
 def _read_robots(args: argparse.Namespace, robot_args: list[str]) -> list:

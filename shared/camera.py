@@ -11,6 +11,12 @@ import numpy as np
 
 from fleetmap.errors import BadInput, BadRobotData
 
+#: Depth units per metre a camera may use: centimetres (100) to 10 micrometres (1e5), where
+#: a 16-bit depth image reads out to 655 m or to 0.65 m. Under 1 it is metres per unit, as
+#: RealSense's SDK gives it (0.001 there is 1000 here); outside it every depth is off by
+#: the same factor and a merge fails far from the cause (or never ends, at 1e300).
+DEPTH_SCALE_RANGE = (100.0, 1e5)
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -28,6 +34,14 @@ class Intrinsics:
         values = [self.fx, self.fy, self.cx, self.cy, self.depth_scale]
         if not all(np.isfinite(v) and v > 0 for v in values):
             raise BadInput(f"Intrinsics must be finite and positive, got {asdict(self)}")
+        lo, hi = DEPTH_SCALE_RANGE
+        if not lo <= self.depth_scale <= hi:
+            inverse = 1 / self.depth_scale  # a RealSense user's 0.001: 1000 here
+            per_unit = f"; as metres per unit, {inverse:g}" * (lo <= inverse <= hi)
+            raise BadInput(
+                f"depth_scale {self.depth_scale:g} is depth units per metre, expected within "
+                f"[{lo:g}, {hi:g}] (TUM: 5000, millimetres: 1000{per_unit})"
+            )
         if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
             raise BadInput(f"Image size out of range: {self.width}x{self.height}")
 

@@ -11,8 +11,9 @@ import cv2
 import numpy as np
 
 from fleetmap.camera import TUM_FR1, Intrinsics, no_reading_as_0
-from fleetmap.errors import BadRobotData
-from fleetmap.geometry import pose_from_tum
+from fleetmap.errors import BadInput, BadRobotData
+from fleetmap.tum_lists import associate, read_list, read_poses  # noqa: F401 (re-exported)
+from fleetmap.view import check_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -87,14 +88,14 @@ class ImageReader:
         return self._fit(load_depth(path), cv2.INTER_NEAREST, path)
 
     def _fit(self, img: np.ndarray, interpolation: int, path: Path) -> np.ndarray:
-        if self.file_intrinsics is None:
-            return img
-        src, k = self.file_intrinsics, self.intrinsics
-        if img.shape[:2] != (src.height, src.width):
+        src, k = self.file_intrinsics or self.intrinsics, self.intrinsics
+        if img.shape[:2] != (src.height, src.width):  # named here, not as a shape later
             raise BadRobotData(
                 f"{path}: {img.shape[1]}x{img.shape[0]}, the recording's first colour image "
                 f"is {src.width}x{src.height}"
             )
+        if self.file_intrinsics is None:
+            return img
         return cv2.resize(img, (k.width, k.height), interpolation=interpolation)
 
 
@@ -108,75 +109,13 @@ def working_intrinsics(native: Intrinsics) -> Intrinsics | None:
     return native.resized(max(1, int(w * s)), max(1, int(h * s)))
 
 
-def read_list(path: Path) -> list[tuple[float, list[str]]]:
-    """Parse a TUM text list: '#' comments and blank lines skipped, sorted by time; a line
-    that does not start with a timestamp is BadRobotData naming it."""
-    if not path.is_file():
-        raise BadRobotData(f"Missing file: {path}")
-    rows = []
-    for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
-        parts = line.split()
-        if not parts or parts[0].startswith("#"):
-            continue
-        try:
-            stamp = float(parts[0])
-        except ValueError:  # skipped silently before: a damaged list lost frames unsaid
-            raise BadRobotData(
-                f"{path}:{n}: expected a timestamp first, got {line.strip()[:60]!r} "
-                "(comments start with '#')"
-            ) from None
-        if not np.isfinite(stamp):
-            raise BadRobotData(f"{path}:{n}: non-finite timestamp")
-        rows.append((stamp, parts[1:]))
-    rows.sort(key=lambda r: r[0])
-    return rows
-
-
-def associate(a: np.ndarray, b: np.ndarray, max_gap: float) -> list[tuple[int, int]]:
-    """Greedy one-to-one nearest-timestamp association, as TUM's associate.py.
-
-    a, b: ndarray of shape (N,) and (M,), sorted stamps. Returns index pairs (i, j).
-    """
-    if len(a) == 0 or len(b) == 0:
-        return []
-    j = np.clip(np.searchsorted(b, a), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(a), int)
-    cand = []
-    for i in range(len(a)):
-        for jj in {int(j[i]) - 1, int(j[i])} if len(b) > 1 else {0}:
-            gap = abs(a[i] - b[jj])
-            if gap <= max_gap:
-                cand.append((gap, i, jj))
-    cand.sort()
-    used_a, used_b, pairs = set(), set(), []
-    for _, i, jj in cand:
-        if i not in used_a and jj not in used_b:
-            used_a.add(i)
-            used_b.add(jj)
-            pairs.append((i, jj))
-    return sorted(pairs)
-
-
-def _read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    rows = read_list(path)
-    stamps, poses = [], []
-    for stamp, vals in rows:
-        if len(vals) < 7:
-            raise BadRobotData(f"{path}: expected 'timestamp tx ty tz qx qy qz qw', got {vals}")
-        try:
-            v = np.array(vals[:7], dtype=np.float64)
-            if not np.isfinite(v).all():
-                raise ValueError(f"non-finite values {vals[:7]}")
-            poses.append(pose_from_tum(v[:3], v[3:7]))
-        except ValueError as exc:
-            raise BadRobotData(f"{path}: bad pose at t={stamp}: {exc}") from exc
-        stamps.append(stamp)
-    return np.array(stamps), poses
-
-
 def _resolve(root: Path, name: str) -> Path:
     p = (root / name).resolve()
     if not p.is_relative_to(root.resolve()):
-        raise BadRobotData(f"{root}: list entry {name!r} points outside the robot folder")
+        raise BadRobotData(
+            f"{root}: list entry {name!r} points outside the robot folder (resolved, links "
+            f"followed: {p}); copy the file in, or link the whole folder"
+        )
     return p
 
 
@@ -208,9 +147,9 @@ def read_recording(
         raise BadRobotData(f"Robot folder not found: {root}")
     robot_id = robot_id or root.resolve().name
     cam = root / "camera.json"
-    declared = intrinsics is None and cam.is_file()  # its width and height must be the images'
+    origin = "given" if intrinsics is not None else (cam if cam.is_file() else None)
     if intrinsics is None:
-        intrinsics = Intrinsics.from_json_file(cam) if declared else TUM_FR1
+        intrinsics = Intrinsics.from_json_file(cam) if origin else TUM_FR1
     rgb = read_list(root / "rgb.txt")
     if not rgb:
         raise BadRobotData(f"{root / 'rgb.txt'} lists no frames")
@@ -221,15 +160,19 @@ def read_recording(
     gt = root / "groundtruth.txt"
     if require_poses and not gt.is_file():
         raise BadRobotData(f"Missing file: {gt}")
-    pose_t, poses = _read_poses(gt) if gt.is_file() else (np.array([]), [])
+    pose_t, poses = read_poses(gt) if gt.is_file() else (np.array([]), [])
 
     frames = _associated(root, rgb, depth, pose_t, poses)
     if not frames:
         raise BadRobotData(
             f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
         )
-    log.info("%s: %d associated frames of %d colour images", robot_id, len(frames), len(rgb))
-    native = _of_images(intrinsics, frames[0].rgb_path, cam if declared else None)
+    dropped = len(rgb) - len(frames)  # TUM's association: no frame left out unsaid
+    (log.warning if dropped else log.info)(
+        "%s: %d associated frames of %d colour images%s", robot_id, len(frames), len(rgb),
+        f" ({dropped} without depth or a pose within {MAX_ASSOCIATION_GAP_S} s)" * bool(dropped),
+    )  # fmt: skip
+    native = _of_images(intrinsics, frames[0].rgb_path, origin)
     work = working_intrinsics(native)
     if work is None:
         return Recording(robot_id, root, native, frames, source=source)
@@ -238,16 +181,44 @@ def read_recording(
     return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
 
 
-def _of_images(intrinsics: Intrinsics, first: Path, declared_in: Path | None) -> Intrinsics:
-    """The intrinsics at the size the images have (`first`, the first colour image);
-    `declared_in`: the camera.json they came from, whose width and height must be that size
-    (its focal length and centre would be another image's)."""
+def overridden(root: Path, flags: dict, topics=None) -> Intrinsics:
+    """The intrinsics of the robot at `root` with `flags` (the CLI's fx, fy, cx, cy,
+    depth_scale) over camera.json's or the TUM fr1 defaults', at the files' own size; where
+    neither fits the images, all four of fx, fy, cx, cy must be given. Checked as camera.json
+    is (`view.check_intrinsics`)."""
+    try:
+        rec = read_recording(root, topics=topics)
+    except BadRobotData:  # no camera.json, not a 640x480 camera: the four flags stand in
+        if not {"fx", "fy", "cx", "cy"} <= set(flags) or (Path(root) / "camera.json").exists():
+            raise
+        rec = read_recording(root, intrinsics=TUM_FR1, topics=topics)
+    K = Intrinsics.from_dict({**(rec.file_intrinsics or rec.intrinsics).to_dict(), **flags})
+    check_intrinsics(K, K.width, K.height, "--fx --fy --cx --cy")
+    return K
+
+
+def _of_images(intrinsics: Intrinsics, first: Path, origin: Path | str | None) -> Intrinsics:
+    """The intrinsics at the size the images have (`first`, the first colour image).
+    `origin`: the camera.json they came from, or None for the TUM fr1 defaults: then they
+    must be for that size (a focal length and centre are one image size's) and plausible
+    for it (`view.check_intrinsics`: a focal length in millimetres, a centre off the image);
+    "given": the caller's, taken as they are (the CLI's flags check their own)."""
     h, w = load_rgb(first).shape[:2]
-    if declared_in is not None and (w, h) != (intrinsics.width, intrinsics.height):
-        raise BadRobotData(
-            f"{declared_in} is for {intrinsics.width}x{intrinsics.height} images, but "
-            f"{first} is {w}x{h}"
-        )
+    if origin != "given":
+        named = origin or "the TUM fr1 defaults (no camera.json)"
+        if (w, h) != (intrinsics.width, intrinsics.height):
+            which, hint = (f"{origin} is", "") if origin else (
+                "no camera.json: the TUM fr1 defaults are",
+                ": give camera.json or --fx --fy --cx --cy --depth-scale",
+            )  # fmt: skip
+            raise BadRobotData(
+                f"{which} for {intrinsics.width}x{intrinsics.height} images, but "
+                f"{first} is {w}x{h}{hint}"
+            )
+        try:
+            check_intrinsics(intrinsics, w, h, str(named))
+        except BadInput as exc:
+            raise BadRobotData(str(exc)) from None
     return dataclasses.replace(intrinsics, width=w, height=h)
 
 

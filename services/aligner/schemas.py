@@ -19,6 +19,7 @@ from typing import Literal
 from pydantic import BaseModel, Field, model_validator
 
 from fleetmap.align.methods import METHODS
+from fleetmap.camera import DEPTH_SCALE_RANGE
 from fleetmap.services.aligner.config import Settings
 from fleetmap.services.schemas import ConfigView, Matrix4
 
@@ -31,7 +32,7 @@ class IntrinsicsIn(BaseModel):
     fy: float = Field(gt=0)
     cx: float
     cy: float
-    depth_scale: float = Field(gt=0)
+    depth_scale: float = Field(ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1])
     width: int = Field(640, gt=0, le=16384)
     height: int = Field(480, gt=0, le=16384)
 

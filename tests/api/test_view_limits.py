@@ -109,3 +109,23 @@ def test_align_refuses_scan_bombs_and_implausible_intrinsics(tum_two_robots):
         tiny = replace(a, intrinsics=replace(a.intrinsics, fx=1e-9, fy=1e-9))
         r = c.post("/align", **align_request([(tiny, b)]))
         assert r.status_code == 422 and "intrinsics implausible" in r.json()["detail"], r.text
+
+
+@pytest.mark.parametrize("depth_scale", [1e-9, 0.001, 1e300])
+def test_align_refuses_a_depth_scale_no_camera_has(tum_two_robots, depth_scale):
+    """An outside tester's /align with depth_scale 1e-9 answered 500 ("Maximum allowed size
+    exceeded", the clouds' reach at 1e9 m), and 1e300 kept a worker busy past 8 minutes,
+    every other request 503: now 422 before anything is decoded (`camera.DEPTH_SCALE_RANGE`);
+    0.001 is RealSense's metres per unit, 1000 here."""
+    import json
+
+    pairs, _ = tum_two_robots
+    req = align_request(pairs[:1])
+    (key,) = req["data"]
+    meta = json.loads(req["data"][key])
+    meta["views_a"][0]["intrinsics"]["depth_scale"] = depth_scale
+    req["data"][key] = json.dumps(meta)
+    with TestClient(aligner_app(AlignerSettings(max_body_bytes=20_000_000))) as c:
+        r = c.post("/align", **req)
+        assert r.status_code == 422 and "depth_scale" in r.text, r.text
+        assert c.post("/align", **align_request(pairs[:1])).status_code == 200
