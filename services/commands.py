@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from fleetmap.camera import Intrinsics
-from fleetmap.errors import BadInput, BadRobotData
+from fleetmap.errors import BadInput, BadRobotData, UnknownRobot
 from fleetmap.lazy import require
 
 log = logging.getLogger("fleetmap")
@@ -43,11 +43,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
-    overrides = {
-        k: getattr(args, k)
-        for k in ("fx", "fy", "cx", "cy", "depth_scale")
-        if getattr(args, k, None) is not None
-    }
+    keys = ("fx", "fy", "cx", "cy", "depth_scale")
+    overrides = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
     if not overrides:
         return None
     from fleetmap.dataset import overridden
@@ -196,7 +193,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
         app = create_aligner(_settings(AlignerSettings), announce=False)
     port = args.port or (8100 if args.service == "place-db" else 8200)
-    from fleetmap.services.common import auth_summary
+    from fleetmap.services.common import auth_summary, check_port
+
+    check_port(args.host, port)  # taken: one line, exit 1 (not "listening", then uvicorn's 3)
 
     log.warning(
         "fleetmap %s %s listening on http://%s:%d (%s)",
@@ -292,7 +291,10 @@ def cmd_align(args: argparse.Namespace) -> int:
 
     rec_a, rec_b = _read_robots(args, [args.robot_a, args.robot_b])
     with PlaceDBClient(args.place_db, token=args.token) as db:
-        overlaps = overlaps_to_align(db, rec_a.robot_id, rec_b.robot_id, wait=args.wait)
+        try:
+            overlaps = overlaps_to_align(db, rec_a.robot_id, rec_b.robot_id, wait=args.wait)
+        except UnknownRobot as exc:  # the usual cause: `align` run before `ingest`
+            raise UnknownRobot(f"{exc} (`fleetmap ingest` its folder first)") from None
     kfs = [keyframe_indices(r, _policy(args)) for r in (rec_a, rec_b)]
     views = pair_views(overlaps, rec_a, rec_b, *kfs, args.max_views)
     if not views:

@@ -67,3 +67,22 @@ def header_timeout_protocol(timeout_s: float = HEADER_TIMEOUT_S):
             super().connection_lost(exc)
 
     return HeaderTimeoutH11
+
+
+def check_port(host: str, port: int) -> None:
+    """Unavailable where the service could not listen on host:port (taken by another
+    process, or not this machine's address): said before the start line, in one line."""
+    import socket
+
+    from fleetmap.errors import Unavailable
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        with socket.socket(infos[0][0], socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+            s.bind(infos[0][4])
+    except OSError as exc:
+        raise Unavailable(
+            f"cannot listen on {host}:{port}: {exc.strerror or exc} (another service there? "
+            "--port another)"
+        ) from None

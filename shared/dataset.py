@@ -275,6 +275,8 @@ def load_depth(path: Path) -> np.ndarray:
     if img.dtype != np.uint16 or img.ndim != 2:
         raise BadRobotData(
             f"Depth image {path} must be 16-bit single-channel, got {img.dtype} {img.shape}"
+            + " (metres as floats: write round(metres x 1000) as 16-bit PNG, depth_scale 1000)"
+            * (img.dtype.kind == "f")
         )
     return no_reading_as_0(img)
 

@@ -59,9 +59,11 @@ def overview(path, pts, tracks, names, colours, links, report, downs=(), title=N
     ax.set_ylabel("m (floor plane, second axis)")
     ax.grid(True, lw=0.3, alpha=0.5)
     ax.legend(loc="best")
+    left = report["unmerged"]
+    unmerged = f" ({', '.join(left)} not: report.json says why)" if left else ""
     ax.set_title(
         title
-        or f"fleetmap: {len(names)} robots merged, {len(report['unmerged'])} unmerged, "
+        or f"fleetmap: {len(names)} of {len(names) + len(left)} robots merged{unmerged}, "
         f"{n_cascade(report)} verified + {len(report['overlaps']) - n_cascade(report)} "
         "co-visible keyframe pairs (verified in grey)\n"
         f"reference frame: {report['reference']}'s map",

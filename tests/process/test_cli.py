@@ -73,6 +73,20 @@ def test_mistakes_end_in_one_line_and_the_right_exit_code(args, code, message):
     assert message in r.stderr and "Traceback" not in r.stderr
 
 
+def test_serve_on_a_taken_port_says_so_in_one_line():
+    """It logged "listening on" the port, then uvicorn's "[Errno 98]" and exit 3 (an outside
+    tester's review)."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = _run("serve", "aligner", "--port", str(port))
+    assert r.returncode == 1, r.stderr
+    assert f"cannot listen on 127.0.0.1:{port}" in r.stderr and "listening" not in r.stderr
+
+
 @pytest.mark.parametrize(
     ("variable", "value", "named"),
     [

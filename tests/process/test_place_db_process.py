@@ -1,6 +1,7 @@
 """The place database as a real process, driven over HTTP by the CLI and httpx."""
 
 import json
+from pathlib import Path
 
 from fleetmap.services.cli import main
 from tests.servers import Service, http
@@ -46,5 +47,11 @@ def test_cli_reports_unreachable_service_and_unknown_robot(tmp_path, capsys):
     try:
         assert main(["overlaps", "A", "B", "--place-db", svc.url]) == 1
         assert "Unknown robot 'A'" in capsys.readouterr().err
+        example = Path(__file__).parents[2] / "examples" / "fr1_pair"
+        pair = [str(example / r) for r in ("alpha", "bravo")]
+        argv = ["align", *pair, "--place-db", svc.url, "--aligner", "http://127.0.0.1:9"]
+        assert main(argv) == 1  # before `ingest`: said how to go on
+        hint = "Unknown robot 'alpha' (`fleetmap ingest` its folder first)"
+        assert hint in capsys.readouterr().err
     finally:
         svc.stop()

@@ -115,6 +115,12 @@ def test_unreadable_depth_image_is_named(tum_robot):
     bad.write_bytes(b"not a png")
     with pytest.raises(BadRobotData, match="broken.png"):
         load_depth(bad)
+    import cv2  # depth in metres as floats (a ROS 32FC1 saved to TIFF): how to write it
+
+    metres = tum_robot / "depth" / "metres.tiff"
+    cv2.imwrite(str(metres), np.full((48, 64), 1.5, np.float32))
+    with pytest.raises(BadRobotData, match=r"float32 .* round\(metres x 1000\)"):
+        load_depth(metres)
 
 
 def test_parse_robot_arg(tmp_path):
