@@ -3,6 +3,7 @@ and the nearest-timestamp association of their rows (CONTRACT.md section 1)."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +11,15 @@ import numpy as np
 from fleetmap.errors import BadRobotData
 from fleetmap.geometry import pose_from_tum
 
+log = logging.getLogger(__name__)
+
 #: Timestamps are seconds: a Unix time in seconds is under this until the year 5138, while
 #: one in milliseconds (1.7e12 in 2026), microseconds or nanoseconds (ROS: 1.7e18) is over.
 MAX_SECONDS = 1e11
+#: A list whose times reach MAX_SECONDS is in the first of these units its largest reaches:
+#: (unit, seconds per unit, from). Kept as written, its rows matched nothing within 0.02
+#: "s" in the other lists, or only their exact copies.
+UNITS = (("nanoseconds", 1e-9, 1e17), ("microseconds", 1e-6, 1e14), ("milliseconds", 1e-3, 0))
 
 
 def read_list(path: Path) -> list[tuple[float, list[str]]]:
@@ -34,15 +41,23 @@ def read_list(path: Path) -> list[tuple[float, list[str]]]:
             ) from None
         if not np.isfinite(stamp):
             raise BadRobotData(f"{path}:{n}: non-finite timestamp")
-        if abs(stamp) >= MAX_SECONDS:  # would match nothing within 0.02 "s": every frame lost
-            raise BadRobotData(
-                f"{path}:{n}: timestamp {parts[0]} is not in seconds (a Unix time in seconds "
-                "stays under 1e11 until the year 5138): milli-, micro- or nanoseconds? ROS "
-                "stamps in nanoseconds divided by 1e9 are seconds"
-            )
         rows.append((stamp, parts[1:]))
     rows.sort(key=lambda r: r[0])
-    return rows
+    return in_seconds(path, rows)
+
+
+def in_seconds(path: Path, rows: list) -> list:
+    """`rows` with their times in seconds: those of a list whose times reach MAX_SECONDS
+    (ROS writes nanoseconds) divided into seconds, as `UNITS` reads them, and said."""
+    big = max((abs(t) for t, _ in rows), default=0.0)
+    if big < MAX_SECONDS:
+        return rows
+    unit, factor = next((u, f) for u, f, lo in UNITS if big >= lo)
+    log.warning(
+        "%s: times up to %.4g read as %s (a Unix time in seconds stays under %g until the "
+        "year 5138)", path, big, unit, MAX_SECONDS,
+    )  # fmt: skip
+    return [(t * factor, v) for t, v in rows]
 
 
 def associate(a: np.ndarray, b: np.ndarray, max_gap: float) -> list[tuple[int, int]]:

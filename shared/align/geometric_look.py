@@ -120,7 +120,10 @@ def basins(
     fa, fb = REG.compute_fpfh_feature(ca, param), REG.compute_fpfh_feature(cb, param)
     # the feature matches once each way (plain, mutual), not once a seed: Open3D's
     # feature RANSAC makes the same ones on every call (`correspondences_from_features`)
-    matched = {m: REG.correspondences_from_features(fb, fa, m) for m in (False, True)}
+    # (where few survive the mutual filter Open3D takes the plain ones, and says so on
+    # stderr past the CLI's -q: not a warning for the user)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        matched = {m: REG.correspondences_from_features(fb, fa, m) for m in (False, True)}
     probe = probe_points(cb)
     found: list[list] = []
     for seed in range(look.seeds):
