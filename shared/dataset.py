@@ -181,17 +181,18 @@ def read_recording(
     return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
 
 
+_FOUR = {"fx", "fy", "cx", "cy"}
+
+
 def overridden(root: Path, flags: dict, topics=None) -> Intrinsics:
     """The intrinsics of the robot at `root` with `flags` (the CLI's fx, fy, cx, cy,
-    depth_scale) over camera.json's or the TUM fr1 defaults', at the files' own size; where
-    neither fits the images, all four of fx, fy, cx, cy must be given. Checked as camera.json
-    is (`view.check_intrinsics`)."""
-    try:
-        rec = read_recording(root, topics=topics)
-    except BadRobotData:  # no camera.json, not a 640x480 camera: the four flags stand in
-        if not {"fx", "fy", "cx", "cy"} <= set(flags) or (Path(root) / "camera.json").exists():
-            raise
-        rec = read_recording(root, intrinsics=TUM_FR1, topics=topics)
+    depth_scale) over camera.json's, a bag's, or the TUM fr1 defaults', at the files' own
+    size. Checked as camera.json is (`view.check_intrinsics`)."""
+    from fleetmap.bags import is_bag
+
+    bare = not is_bag(root) and not (Path(root) / "camera.json").exists()  # the defaults'
+    stand_in = bare and _FOUR <= set(flags)  # not the defaults' camera: said only if not
+    rec = read_recording(root, intrinsics=TUM_FR1 if stand_in else None, topics=topics)
     K = Intrinsics.from_dict({**(rec.file_intrinsics or rec.intrinsics).to_dict(), **flags})
     check_intrinsics(K, K.width, K.height, "--fx --fy --cx --cy")
     return K
@@ -199,24 +200,27 @@ def overridden(root: Path, flags: dict, topics=None) -> Intrinsics:
 
 def _of_images(intrinsics: Intrinsics, first: Path, origin: Path | str | None) -> Intrinsics:
     """The intrinsics at the size the images have (`first`, the first colour image).
-    `origin`: the camera.json they came from, or None for the TUM fr1 defaults: then they
-    must be for that size (a focal length and centre are one image size's) and plausible
-    for it (`view.check_intrinsics`: a focal length in millimetres, a centre off the image);
-    "given": the caller's, taken as they are (the CLI's flags check their own)."""
+    `origin`: the camera.json they came from, which must be for that size (a focal length
+    and centre are one image size's) and plausible for it (`view.check_intrinsics`: a focal
+    length in millimetres, a centre off the image); None: the TUM fr1 defaults, as the
+    contract has them where there is no camera.json, with a warning where the images are
+    not their 640x480; "given": the caller's, taken as they are (the CLI's flags check
+    their own)."""
     h, w = load_rgb(first).shape[:2]
-    if origin != "given":
-        named = origin or "the TUM fr1 defaults (no camera.json)"
+    if origin is None and (w, h) != (intrinsics.width, intrinsics.height):
+        log.warning(
+            "%s is %dx%d, and there is no camera.json: the TUM fr1 defaults taken in its place "
+            "are a 640x480 camera's, so the map's geometry will be off; give camera.json or "
+            "--fx --fy --cx --cy --depth-scale", first, w, h,
+        )  # fmt: skip
+    elif origin not in (None, "given"):
         if (w, h) != (intrinsics.width, intrinsics.height):
-            which, hint = (f"{origin} is", "") if origin else (
-                "no camera.json: the TUM fr1 defaults are",
-                ": give camera.json or --fx --fy --cx --cy --depth-scale",
-            )  # fmt: skip
             raise BadRobotData(
-                f"{which} for {intrinsics.width}x{intrinsics.height} images, but "
-                f"{first} is {w}x{h}{hint}"
+                f"{origin} is for {intrinsics.width}x{intrinsics.height} images, but "
+                f"{first} is {w}x{h}"
             )
         try:
-            check_intrinsics(intrinsics, w, h, str(named))
+            check_intrinsics(intrinsics, w, h, str(origin))
         except BadInput as exc:
             raise BadRobotData(str(exc)) from None
     return dataclasses.replace(intrinsics, width=w, height=h)

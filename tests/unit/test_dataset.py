@@ -266,11 +266,12 @@ def test_a_robot_seen_by_another_camera_back_projects_to_the_same_scene(tmp_path
         other_camera(tmp_path / "a", rows=0.0)
 
 
-def test_camera_mistakes_are_named_where_they_are_read(tum_robot):
+def test_camera_mistakes_are_named_where_they_are_read(tum_robot, caplog):
     """An outside tester's review: without camera.json a 540x360 camera was read with the
-    TUM fr1 defaults unsaid (and left unmerged); RealSense's depth_scale 0.001 ended in a
-    LinAlgError; a focal length in millimetres failed only at the aligner, naming neither
-    robot nor file; a frame of another size failed in extraction, naming no file."""
+    TUM fr1 defaults unsaid (the contract's defaults: now said); RealSense's depth_scale
+    0.001 ended in a LinAlgError; a focal length in millimetres failed only at the aligner,
+    naming neither robot nor file; a frame of another size failed in extraction, naming no
+    file."""
     import json
 
     import cv2
@@ -282,13 +283,14 @@ def test_camera_mistakes_are_named_where_they_are_read(tum_robot):
         for path in (f.rgb_path, f.depth_path):
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             cv2.imwrite(str(path), cv2.resize(img, (540, 360), interpolation=cv2.INTER_NEAREST))
-    defaults = "no camera.json: the TUM fr1 defaults are for 640x480 .* is 540x360: give"
-    with pytest.raises(BadRobotData, match=defaults):
-        read_recording(tum_robot)
+    with caplog.at_level("WARNING", logger="fleetmap.dataset"):  # the contract's defaults
+        assert read_recording(tum_robot).intrinsics.cx == TUM_FR1.cx
+    assert "540x360, and there is no camera.json: the TUM fr1 defaults" in caplog.text
+    caplog.clear()
     flags = {"fx": 436.5, "fy": 435.8, "cx": 268.7, "cy": 215.4}  # the four flags stand in
-    assert overridden(tum_robot, flags).width == 540
-    with pytest.raises(BadRobotData, match="TUM fr1 defaults"):  # one of them cannot
-        overridden(tum_robot, {"depth_scale": 1000.0})
+    with caplog.at_level("WARNING", logger="fleetmap.dataset"):
+        K = overridden(tum_robot, flags)
+    assert (K.width, K.cx, K.depth_scale) == (540, 268.7, 5000.0) and not caplog.text
     cam = flags | {"depth_scale": 5000.0, "width": 540, "height": 360}
     for bad, message in (
         ({"depth_scale": 0.001}, r"depth units per metre.*as metres per unit, 1000"),
