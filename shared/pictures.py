@@ -59,7 +59,7 @@ def overview(path, pts, tracks, names, colours, links, report, downs=(), title=N
     ax.set_ylabel("m (floor plane, second axis)")
     ax.grid(True, lw=0.3, alpha=0.5)
     ax.legend(loc="best")
-    left = report["unmerged"]
+    left = report.get("unmerged", [])  # the live map's has none
     unmerged = f" ({', '.join(left)} not: report.json says why)" if left else ""
     ax.set_title(
         title
