@@ -12,7 +12,7 @@ import numpy as np
 
 from fleetmap.camera import TUM_FR1, Intrinsics, no_reading_as_0
 from fleetmap.errors import BadInput, BadRobotData
-from fleetmap.tum_lists import associate, read_list, read_poses  # noqa: F401 (re-exported)
+from fleetmap.tum_lists import associate, read_list, read_poses
 from fleetmap.view import check_intrinsics
 
 log = logging.getLogger(__name__)
