@@ -84,9 +84,16 @@ def associate(a: np.ndarray, b: np.ndarray, max_gap: float) -> list[tuple[int, i
     return sorted(pairs)
 
 
+#: A pose's quaternion further than this from unit length is said: no rounding of a written
+#: one (TUM writes four decimals) comes near it, while columns shifted by one (an index
+#: before tx, the quaternion's w first) mostly do.
+QUATERNION_SLACK = 0.05
+
+
 def read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    """`groundtruth.txt`'s times and camera-to-map poses ("timestamp tx ty tz qx qy qz qw")."""
     rows = read_list(path)
-    stamps, poses = [], []
+    stamps, poses, norms = [], [], []
     for stamp, vals in rows:
         if len(vals) < 7:
             raise BadRobotData(f"{path}: expected 'timestamp tx ty tz qx qy qz qw', got {vals}")
@@ -98,4 +105,12 @@ def read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
         except ValueError as exc:
             raise BadRobotData(f"{path}: bad pose at t={stamp}: {exc}") from exc
         stamps.append(stamp)
+        norms.append(np.linalg.norm(v[3:7]))
+    off = np.abs(np.array(norms) - 1) > QUATERNION_SLACK
+    if off.any():  # normalised as before (the same rotation), but said
+        log.warning(
+            "%s: %d of %d quaternions %.3g-%.3g long, not 1 (normalised): are the columns "
+            "'timestamp tx ty tz qx qy qz qw'?", path, off.sum(), len(off),
+            min(np.array(norms)[off]), max(np.array(norms)[off]),
+        )  # fmt: skip
     return np.array(stamps), poses

@@ -325,3 +325,20 @@ def test_times_in_nanoseconds_are_read_and_frames_left_out_are_said(tum_robot, c
     with caplog.at_level("WARNING", logger="fleetmap.dataset"):
         assert len(read_recording(tum_robot)) == 2
     assert "2 associated frames of 3 colour images (1 without depth or a pose" in caplog.text
+
+
+def test_poses_whose_quaternions_are_not_unit_are_said(tum_robot, caplog):
+    """Columns shifted by one (an index before tx) read a translation into the quaternion,
+    normalised unsaid (an outside tester's review): the rotation was garbage, the merge
+    refused far from the cause."""
+    gt = tum_robot / "groundtruth.txt"
+    text = gt.read_text()
+    with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
+        read_recording(tum_robot)
+    assert not caplog.text  # TUM's own, four decimals: unit within rounding
+    rows = [ln.split() for ln in text.splitlines() if not ln.startswith("#")]
+    gt.write_text("".join(" ".join([r[0], str(i), *r[1:]]) + "\n" for i, r in enumerate(rows)))
+    with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
+        read_recording(tum_robot)
+    assert "2 of 2 quaternions" in caplog.text
+    assert "are the columns 'timestamp tx ty tz qx qy qz qw'?" in caplog.text
