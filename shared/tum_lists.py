@@ -106,11 +106,11 @@ def read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
             raise BadRobotData(f"{path}: bad pose at t={stamp}: {exc}") from exc
         stamps.append(stamp)
         norms.append(np.linalg.norm(v[3:7]))
-    off = np.abs(np.array(norms) - 1) > QUATERNION_SLACK
-    if off.any():  # normalised as before (the same rotation), but said
+    norms = np.array(norms)
+    off = norms[np.abs(norms - 1) > QUATERNION_SLACK]
+    if len(off):  # normalised as before (the same rotation), but said
         log.warning(
             "%s: %d of %d quaternions %.3g-%.3g long, not 1 (normalised): are the columns "
-            "'timestamp tx ty tz qx qy qz qw'?", path, off.sum(), len(off),
-            min(np.array(norms)[off]), max(np.array(norms)[off]),
+            "'timestamp tx ty tz qx qy qz qw'?", path, len(off), len(norms), off.min(), off.max(),
         )  # fmt: skip
     return np.array(stamps), poses
