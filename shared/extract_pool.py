@@ -110,6 +110,28 @@ def _tasks(
 
 
 @contextlib.contextmanager
+def _safe_path():
+    """The fork server started without the working folder on its import path. Python 3.11
+    starts it with `python -c`, whose path begins with the working folder, and ignores the
+    `sys_path` multiprocessing hands it: run from a folder holding a `fleetmap` folder (the
+    clone's parent), the server imported that as the package and every worker failed
+    ("Cannot read vocabulary <cwd>/fleetmap/assets/..."). `PYTHONSAFEPATH` (3.11) leaves
+    the working folder out."""
+    from multiprocessing import forkserver
+
+    saved = os.environ.get("PYTHONSAFEPATH")
+    os.environ["PYTHONSAFEPATH"] = "1"
+    try:
+        forkserver.ensure_running()
+    finally:
+        if saved is None:
+            del os.environ["PYTHONSAFEPATH"]
+        else:
+            os.environ["PYTHONSAFEPATH"] = saved
+    yield
+
+
+@contextlib.contextmanager
 def _main_hidden():
     """Workers need only this package: keep multiprocessing from running the caller's main
     script again in each of them (a console script, a notebook, `python -` from stdin)."""
@@ -152,7 +174,7 @@ def extract_keyframes(
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["fleetmap.extract", "fleetmap.extract_pool"])
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(vocab_path,))
-    with _main_hidden():  # workers start here, on submission
+    with _safe_path(), _main_hidden():  # workers start here, on submission
         results = pool.map(_extract, tasks, chunksize=2)  # every task submitted now
 
     def ordered() -> Iterator[Keyframe]:

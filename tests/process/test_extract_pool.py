@@ -39,3 +39,32 @@ def test_closing_the_iterator_stops_the_workers(sun3d):
     first = next(it)
     it.close()  # no hang, no leftover work
     assert first.robot_id == "A"
+
+
+def test_workers_start_from_a_folder_holding_a_fleetmap_folder(tmp_path):
+    """Run from the clone's parent (a `fleetmap` folder in the working folder), the fork
+    server imported that folder as the package and every worker failed ("Cannot read
+    vocabulary <cwd>/fleetmap/assets/...", BrokenProcessPool); the workers now import the
+    installed package wherever the command runs."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    robot = Path(__file__).parents[2] / "examples" / "fr1_rpy_fleet" / "alpha"
+    script = tmp_path / "run.py"
+    script.write_text(
+        "import sys\n"
+        "from fleetmap.dataset import read_recording\n"
+        "from fleetmap.extract_pool import extract_keyframes\n"
+        f"rec = read_recording({str(robot)!r}, 'A')\n"
+        "kfs = list(extract_keyframes([rec], {'A': list(range(len(rec)))}, workers=2))\n"
+        "print(len(kfs), len(rec))\n"
+    )
+    cwd = tmp_path / "parent"
+    (cwd / "fleetmap" / "assets").mkdir(parents=True)  # a clone's name, or an --out folder
+    run = subprocess.run(
+        [sys.executable, str(script)], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    n, total = map(int, run.stdout.split())
+    assert n == total >= 8  # enough frames for the process pool
