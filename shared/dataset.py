@@ -161,6 +161,8 @@ def read_recording(
     if require_poses and not gt.is_file():
         raise BadRobotData(f"Missing file: {gt}")
     pose_t, poses = read_poses(gt) if gt.is_file() else (np.array([]), [])
+    if gt.is_file() and not poses:  # given, and unreadable as poses: not "no poses"
+        raise BadRobotData(f"{gt} lists no poses ('timestamp tx ty tz qx qy qz qw' lines)")
 
     frames = _associated(root, rgb, depth, pose_t, poses)
     if not frames:

@@ -58,6 +58,17 @@ def test_missing_folder_and_bad_pose_are_clear(tum_robot, tmp_path):
         read_recording(tum_robot)
 
 
+@pytest.mark.parametrize("text", ["", "# timestamp tx ty tz qx qy qz qw\n"])
+def test_a_groundtruth_file_without_poses_is_refused(tum_robot, text):
+    """An empty (or comments-only) groundtruth.txt was read as "no poses": `merge` and
+    `stream` then failed deep in the geometry with a traceback, and `ingest` posted frames
+    without poses unsaid. A file given but holding no pose is named."""
+    (tum_robot / "groundtruth.txt").write_text(text)
+    for require in (False, True):
+        with pytest.raises(BadRobotData, match="groundtruth.txt lists no poses"):
+            read_recording(tum_robot, require_poses=require)
+
+
 @pytest.mark.parametrize(
     "file, line, named",
     [
