@@ -9,7 +9,7 @@ import sys
 
 from fleetmap.align.methods import METHODS
 from fleetmap.errors import FleetmapError
-from fleetmap.fleet.types import DEFAULT_MERGE
+from fleetmap.fleet.types import DEFAULT_MERGE, MIN_VOXEL_M
 from fleetmap.services import commands
 
 KF = DEFAULT_MERGE.keyframes  # the CLI's defaults are the stages' (`fleetmap.fleet.types`)
@@ -69,7 +69,7 @@ def _add_max_views(p: argparse.ArgumentParser) -> None:
 def _add_voxel(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--voxel",
-        type=_positive_m,
+        type=_voxel_m,
         default=DEFAULT_MERGE.voxel_m,
         metavar="M",
         help="merged map voxel size (default %(default)g m)",
@@ -120,7 +120,7 @@ def _number(
     return parse
 
 
-_positive_m = _number("length (a number of metres above 0)", 0, above=True)
+_voxel_m = _number(f"voxel (metres, {MIN_VOXEL_M} or more)", MIN_VOXEL_M, above=False)
 _positive_count = _number("count (a whole number of 1 or more)", 0, above=True, integer=True)
 _seconds = _number("seconds (a number of 0 or more)", 0, above=False)
 _threshold = _number("threshold (0 or more; inf: never)", 0, above=False, finite=False)

@@ -34,6 +34,13 @@ class ViewParams:
     local_path_m: float = 2.5
 
 
+#: The finest merged-map voxel: an RGB-D camera's depth comes in steps of about a
+#: millimetre (a 16-bit reading in mm or 0.2 mm), so a finer voxel thins nothing, and far
+#: finer ones overflow Open3D's voxel grid (1e-12 m: "voxel_size is too small" after the
+#: whole merge had run)
+MIN_VOXEL_M = 0.001
+
+
 @dataclass(frozen=True)
 class MergeParams:
     """What `fleetmap merge` runs with beside its robots and services (the CLI's defaults;
@@ -44,6 +51,10 @@ class MergeParams:
     voxel_m: float = 0.03  # merged.ply's voxel size
     pcd: bool = False  # also write merged.pcd
     correct_drift: bool = True  # the keyframe pose graph over the fleet (`fleetmap.fleet`)
+
+    def __post_init__(self) -> None:
+        if not self.voxel_m >= MIN_VOXEL_M:  # NaN too
+            raise ValueError(f"voxel_m must be at least {MIN_VOXEL_M} m, got {self.voxel_m}")
 
 
 DEFAULT_VIEWS = ViewParams()

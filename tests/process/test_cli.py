@@ -54,6 +54,8 @@ def test_version_and_help():
         # numbers that cannot mean what they ask (an outside tester's: tracebacks before)
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--voxel", "-1"], 2, "--voxel"),
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--voxel", "nan"], 2, "--voxel"),
+        (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--voxel", "1e-12"], 2, "--voxel"),
+        (["map", "--place-db", "http://127.0.0.1:9", "-o", "x", "--voxel", "1e-4"], 2, "--voxel"),
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--max-views", "0"], 2, "--max-views"),
         (["overlaps", "a", "b", "--place-db", "http://127.0.0.1:9", "--wait", "nan"], 2, "--wait"),
         (["serve", "place-db", "--port", "99999"], 2, "--port"),
