@@ -334,14 +334,14 @@ def cmd_merge(args: argparse.Namespace) -> int:
     require("fleetmap merge")
     from fleetmap.pictures import n_cascade
     from fleetmap.services.merge import run_merge
+    from fleetmap.services.outputs import prepare_out
 
     recs = _read_robots(args, args.robots)
     ids = [r.robot_id for r in recs]
     if len(set(ids)) != len(ids):
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise BadInput(f"--out {out} exists and is not a folder")
+    prepare_out(out)
     report = run_merge(
         recs,
         out,

@@ -122,10 +122,10 @@ def cmd_map(args: argparse.Namespace) -> int:
     """Write the live map's files: what `fleetmap merge` writes."""
     from fleetmap.client import PlaceDBClient, services_config
     from fleetmap.fleet.map_render import BASE_VOXEL_M
+    from fleetmap.services.outputs import prepare_out
 
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise BadInput(f"--out {out} exists and is not a folder")
+    prepare_out(out)
     if args.voxel <= 0:
         raise BadInput(f"--voxel must be positive, got {args.voxel}")
     t0, voxel = time.perf_counter(), max(args.voxel, BASE_VOXEL_M)

@@ -5,15 +5,48 @@ trajectory in the reference frame (TUM), the robots' pose graph (g2o) and the pi
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from fleetmap import pictures
 from fleetmap.dataset import Recording
+from fleetmap.errors import BadInput
 from fleetmap.fleet.types import MergeParams
 from fleetmap.geometry import apply, pose_to_tum
 from fleetmap.mapcloud import ROBOT_COLOURS, write_pcd, write_ply
+
+log = logging.getLogger(__name__)
+
+
+#: The files `merge` and `map` write in their --out folder, beside `trajectories/`
+OUTPUT_FILES = (
+    "report.json", "merged.ply", "merged.pcd", "overview.png", "overlap_matrix.png",
+    "pose_graph.g2o", "fleet.mcap",
+)  # fmt: skip
+
+
+def prepare_out(out: Path) -> None:
+    """--out checked before any work: a folder or nothing yet, where no file this writes is
+    a folder and `trajectories` is not a file (a `report.json` folder failed the run at its
+    end, the other files written). A previous run's outputs this run may not write again
+    are removed: trajectories/*.txt of robots not in this run stayed beside this run's
+    (a reader of trajectories/ took them for this fleet's), merged.pcd of a run with --pcd."""
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out} exists and is not a folder")
+    for name in OUTPUT_FILES:
+        if (out / name).is_dir():
+            raise BadInput(f"--out {out}: {name} is a folder, where this writes a file")
+    tracks = out / "trajectories"
+    if tracks.exists() and not tracks.is_dir():
+        raise BadInput(f"--out {out}: trajectories is a file, where this writes a folder")
+    stale = [*(tracks.glob("*.txt") if tracks.is_dir() else ()), out / "merged.pcd"]
+    stale = [f for f in stale if f.is_file()]
+    for f in stale:
+        f.unlink()
+    if stale:
+        log.info("%s: %d outputs of a previous run removed", out, len(stale))
 
 
 @dataclasses.dataclass

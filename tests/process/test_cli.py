@@ -75,6 +75,15 @@ def test_mistakes_end_in_one_line_and_the_right_exit_code(args, code, message):
     assert message in r.stderr and "Traceback" not in r.stderr
 
 
+def test_an_out_folder_holding_a_report_json_folder_stops_before_the_merge(tmp_path):
+    """The merge ran whole, wrote the other files, then failed on report.json ("Is a
+    directory")."""
+    (tmp_path / "report.json").mkdir()
+    r = _run("merge", str(EXAMPLE / "alpha"), str(EXAMPLE / "bravo"), "-o", str(tmp_path))
+    assert r.returncode == 1 and "report.json is a folder" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "merged.ply").exists()
+
+
 def test_serve_on_a_taken_port_says_so_in_one_line():
     """It logged "listening on" the port, then uvicorn's "[Errno 98]" and exit 3 (an outside
     tester's review)."""
