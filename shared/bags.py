@@ -55,9 +55,8 @@ def cached_tum(bag: Path, topics: BagTopics = BagTopics(), cache: Path | None = 
     """The bag as a TUM folder in the cache (made on first use, reused while the bag is
     unchanged)."""
     bag = Path(bag).resolve()
-    st = bag.stat()
     key = hashlib.sha256(
-        json.dumps([str(bag), st.st_size, st.st_mtime_ns, topics.__dict__]).encode()
+        json.dumps([str(bag), _bag_state(bag), topics.__dict__]).encode()
     ).hexdigest()[:16]
     root = cache or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "fleetmap"
     out = root / "bags" / f"{bag.stem}-{key}"
@@ -72,6 +71,14 @@ def cached_tum(bag: Path, topics: BagTopics = BagTopics(), cache: Path | None = 
         shutil.rmtree(out, ignore_errors=True)
         tmp.rename(out)  # whole or not at all
     return out
+
+
+def _bag_state(bag: Path) -> list:
+    """What says a bag changed: a file's size and modification time; a ROS 2 bag folder's,
+    each of its files' (rewriting a folder's .db3 and metadata.yaml in place changes
+    neither the folder's size nor its time, and the stale conversion was read)."""
+    files = sorted(p for p in bag.rglob("*") if p.is_file()) if bag.is_dir() else [bag]
+    return [[str(p.relative_to(bag)), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
 
 
 def _reader(bag: Path):

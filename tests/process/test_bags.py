@@ -111,6 +111,23 @@ def test_a_bag_reads_as_the_folder_it_was_made_from(sun3d, tmp_path, ros1):
         np.testing.assert_array_equal(load_depth(fb.depth_path), load_depth(fd.depth_path))
 
 
+def test_a_ros2_bag_rewritten_in_place_is_converted_again(sun3d, tmp_path):
+    """The conversion was cached by the bag folder's own size and time, which rewriting its
+    .db3 and metadata.yaml in place changes neither: the 6-frame conversion was read for
+    the 3-frame bag (an outside tester's review)."""
+    import shutil
+
+    bag, other = tmp_path / "b_bag", tmp_path / "other" / "b_bag"
+    write_bag(sun3d / "robot_b", bag, frames=6)
+    assert len(read_recording(bag)) == 6
+    write_bag(sun3d / "robot_b", other, frames=3)
+    names = sorted(p.name for p in bag.iterdir())
+    assert names == sorted(p.name for p in other.iterdir())  # the same files, rewritten
+    for name in names:
+        shutil.copyfile(other / name, bag / name)
+    assert len(read_recording(bag)) == 3
+
+
 def test_depth_in_metres_and_ambiguous_topics(sun3d, tmp_path):
     bag = tmp_path / "m_bag"
     write_bag(sun3d / "robot_a", bag, depth_m=True, frames=2)
