@@ -157,12 +157,7 @@ def read_recording(
     if require_depth and not has_depth:
         raise BadRobotData(f"Missing file: {root / 'depth.txt'}")
     depth = read_list(root / "depth.txt") if has_depth else None
-    gt = root / "groundtruth.txt"
-    if require_poses and not gt.is_file():
-        raise BadRobotData(f"Missing file: {gt}")
-    pose_t, poses = read_poses(gt) if gt.is_file() else (np.array([]), [])
-    if gt.is_file() and not poses:  # given, and unreadable as poses: not "no poses"
-        raise BadRobotData(f"{gt} lists no poses ('timestamp tx ty tz qx qy qz qw' lines)")
+    pose_t, poses = _poses(root / "groundtruth.txt", require_poses)
 
     frames = _associated(root, rgb, depth, pose_t, poses)
     if not frames:
@@ -181,6 +176,19 @@ def read_recording(
     n = native
     log.info("%s: %dx%d images read at %dx%d", robot_id, n.width, n.height, work.width, work.height)
     return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
+
+
+def _poses(gt: Path, required: bool) -> tuple[np.ndarray, list]:
+    """groundtruth.txt's times and poses; none where the file is absent and not `required`.
+    A file given that lists no pose (empty, comments only) is named, not read as none."""
+    if not gt.is_file():
+        if required:
+            raise BadRobotData(f"Missing file: {gt}")
+        return np.array([]), []
+    pose_t, poses = read_poses(gt)
+    if not poses:
+        raise BadRobotData(f"{gt} lists no poses ('timestamp tx ty tz qx qy qz qw' lines)")
+    return pose_t, poses
 
 
 _FOUR = {"fx", "fy", "cx", "cy"}
