@@ -28,6 +28,7 @@ import numpy as np
 from fleetmap.camera import Intrinsics
 from fleetmap.errors import BadFrame, BadInput
 from fleetmap.geometry import check_transform
+from fleetmap.tum_lists import MAX_SECONDS
 
 MAGIC = b"FMFS"
 VERSION = 1
@@ -120,6 +121,11 @@ def validate(f: Frame) -> None:
         or not np.isfinite(f.stamp)
     ):
         raise BadInput(f"stamp must be a finite number, got {f.stamp!r}")
+    if not 0 <= f.stamp < MAX_SECONDS:  # a robot's clock: seconds, never before its start
+        raise BadInput(
+            f"stamp must be seconds in [0, {MAX_SECONDS:g}), got {f.stamp!r}"
+            + " (nanoseconds? send seconds)" * (f.stamp >= MAX_SECONDS)
+        )
     f.stamp = float(f.stamp)
     f.gist = _arr(f.gist, np.float16, (-1,), "gist")
     if not 0 < len(f.gist) <= MAX_GIST_DIM:
@@ -208,6 +214,15 @@ class _Reader:
         return a.astype(np.dtype(dtype).newbyteorder("="))
 
 
+def _unique_keys(pairs: list) -> dict:
+    """A JSON object whose keys are each given once (two "stamp"s: which one was meant?)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen = [k for k, _ in pairs]
+        raise ValueError(f"key {next(k for k in seen if seen.count(k) > 1)!r} given twice")
+    return out
+
+
 def _header(buf: bytes) -> tuple[int, dict, int]:
     if len(buf) > MAX_FRAME_BYTES:
         raise BadFrame(f"Frame of {len(buf)} bytes exceeds the {MAX_FRAME_BYTES}-byte limit")
@@ -227,7 +242,9 @@ def _header(buf: bytes) -> tuple[int, dict, int]:
         raise BadFrame("Frame checksum mismatch (corrupted or truncated)")
     try:
         header = json.loads(
-            buf[_PREFIX.size : _PREFIX.size + hlen].decode(), parse_constant=_reject_constant
+            buf[_PREFIX.size : _PREFIX.size + hlen].decode(),
+            parse_constant=_reject_constant,
+            object_pairs_hook=_unique_keys,
         )
         if not isinstance(header, dict):
             raise ValueError("header is not an object")

@@ -121,6 +121,18 @@ def decode_image(data: bytes, name: str, depth: bool) -> np.ndarray:
     return no_reading_as_0(img) if depth else img
 
 
+def _check_colour(data: bytes) -> None:
+    """The colour part decodes to 8-bit grey or colour: a 16-bit image there (a depth image
+    in the wrong part) was squeezed to 8 bits and stored as the view's colour."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BadInput("rgb: image does not decode")
+    if img.dtype != np.uint8 or img.ndim not in (2, 3):
+        raise BadInput(f"rgb: colour must be 8-bit, got {img.dtype} {img.shape} (a depth image?)")
+
+
 def check_view(frame, parts: dict[str, bytes], max_pixels: int) -> tuple[bytes, bytes]:
     """The (colour, depth) bytes of a view posted with `frame`, checked: both parts present,
     the frame carries a pose and intrinsics, both images of the frame's size and within
@@ -137,7 +149,7 @@ def check_view(frame, parts: dict[str, bytes], max_pixels: int) -> tuple[bytes, 
         if (w, h) != (frame.width, frame.height):
             raise BadInput(f"{p}: {w}x{h}, but the frame is {frame.width}x{frame.height}")
     check_intrinsics(frame.intrinsics, frame.width, frame.height, "view")
-    decode_image(parts["rgb"], "rgb", False)
+    _check_colour(parts["rgb"])
     if not decode_image(parts["depth"], "depth", True).any():
         raise BadInput("depth: the image has no valid reading")
     return bytes(parts["rgb"]), bytes(parts["depth"])

@@ -129,3 +129,12 @@ def test_align_refuses_a_depth_scale_no_camera_has(tum_two_robots, depth_scale):
         r = c.post("/align", **req)
         assert r.status_code == 422 and "depth_scale" in r.text, r.text
         assert c.post("/align", **align_request(pairs[:1])).status_code == 200
+
+
+def test_a_depth_image_in_the_colour_part_is_refused(client, alpha):
+    """A 16-bit depth PNG sent as `rgb` was squeezed to 8 bits and stored as the view's
+    colour (201; an outside tester's review)."""
+    frame, view = keyframe(alpha)
+    r = post(client, frame, view | {"rgb": view["depth"]})
+    assert r.status_code == 422 and "colour must be 8-bit" in r.json()["detail"], r.text
+    assert client.get("/robots").json()["robots"] == []

@@ -103,6 +103,10 @@ def test_header_lies_are_caught(real_frame):
             "translation exceeds",
         ),
         ({"stamp": True}, "stamp"),
+        # stored with 201 before, and listed in /robots and /overlaps (an outside tester)
+        ({"stamp": -5.0}, r"stamp must be seconds in \[0, 1e\+11\)"),
+        ({"stamp": 1e18}, "nanoseconds"),
+        ({"stamp": 1e300}, "nanoseconds"),
         ({"bow_ids": np.array([2, 1], np.uint32)}, "strictly increasing"),
         ({"keypoints": np.full((5, 2), 5000, np.float32)}, "outside"),
         (
@@ -166,6 +170,16 @@ def test_hostile_headers_are_clean_errors():
     digits = b'{"robot_id": "r1", "stamp": ' + b"9" * 5000 + b"}"
     with pytest.raises(BadFrame, match="Bad frame header|Invalid frame"):
         decode(_reframed(buf, header=digits))
+
+
+def test_a_header_key_given_twice_is_refused():
+    """Two "stamp" keys: the last one was taken, unsaid (an outside tester's review)."""
+    buf = encode(make_frame())
+    hlen = struct.unpack_from("<I", buf, 8)[0]
+    header = buf[12 : 12 + hlen]
+    twice = header[:-1] + b',"stamp":5.0}'
+    with pytest.raises(BadFrame, match="'stamp' given twice"):
+        decode(_reframed(buf, header=twice))
 
 
 @pytest.mark.parametrize("bad", ["sa\n", "sa\r\n", "\nsa", "sa\x00", "-sa", "a" * 65, ""])
