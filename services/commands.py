@@ -54,22 +54,13 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
 
 def _read_robots(args: argparse.Namespace, robot_args: list[str]) -> list:
     """Recordings with depth and poses for [NAME=]DIR arguments."""
-    from fleetmap.dataset import parse_robot_arg, read_recording
+    from fleetmap.robot_args import check_distinct, read_robot
 
-    recs = []
-    for arg in robot_args:
-        name, robot_dir = parse_robot_arg(arg)
-        recs.append(
-            read_recording(
-                robot_dir,
-                name,
-                _intrinsics(args, robot_dir),
-                require_depth=True,
-                require_poses=True,
-                topics=_topics(args),
-            )
-        )
-    return recs
+    def camera(robot_dir):
+        return _intrinsics(args, robot_dir)
+
+    kw = {"require_depth": True, "require_poses": True, "topics": _topics(args)}
+    return check_distinct([read_robot(arg, camera, **kw) for arg in robot_args])
 
 
 def _policy(args: argparse.Namespace):
@@ -93,13 +84,12 @@ def _merge_params(args: argparse.Namespace):
 
 def cmd_extract(args: argparse.Namespace) -> int:
     """Write one encoded frame structure per keyframe of a robot folder."""
-    from fleetmap.dataset import parse_robot_arg, read_recording
     from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
     from fleetmap.frame import encode
+    from fleetmap.robot_args import read_robot
     from fleetmap.vocabulary import load_vocabulary
 
-    name, robot_dir = parse_robot_arg(args.robot)
-    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
+    rec = read_robot(args.robot, lambda d: _intrinsics(args, d), topics=_topics(args))
     extractor = FrameExtractor(load_vocabulary(args.vocab))
     if not args.output.strip():  # Path("") is the current folder: not what was meant
         raise BadInput("-o/--output: an empty folder name")
@@ -221,11 +211,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tuple[str, int]:
     """Extract a robot folder's keyframes and POST them; returns (robot id, keyframes)."""
-    from fleetmap.dataset import parse_robot_arg, read_recording
     from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
+    from fleetmap.robot_args import read_robot
 
-    name, robot_dir = parse_robot_arg(robot_arg)
-    rec = read_recording(robot_dir, name, _intrinsics(args, robot_dir), topics=_topics(args))
+    rec = read_robot(robot_arg, lambda d: _intrinsics(args, d), topics=_topics(args))
     n = len(keyframe_indices(rec, _policy(args)))
     frames = extract_recording(rec, FrameExtractor(vocab), _policy(args))
     for frame in tqdm(

@@ -295,15 +295,6 @@ def load_depth(path: Path) -> np.ndarray:
     return no_reading_as_0(img)
 
 
-def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
-    """'NAME=DIR' or 'DIR' as (name or None, path)."""
-    if "=" in arg and not Path(arg).exists():
-        name, _, path = arg.partition("=")
-        if name:
-            return name, Path(path)
-    return None, Path(arg)
-
-
 def cut_recording(
     src: Path,
     frames: slice,

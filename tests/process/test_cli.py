@@ -55,6 +55,15 @@ def test_version_and_help():
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--voxel", "-1"], 2, "--voxel"),
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--voxel", "nan"], 2, "--voxel"),
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--voxel", "1e-12"], 2, "--voxel"),
+        # robots named wrong (an outside tester's: the working folder read, "File name too
+        # long", one folder merged with itself as the identity)
+        (["merge", "A=", f"B={EXAMPLE / 'alpha'}", "-o", "x"], 1, "no robot folder after '='"),
+        (["merge", f"{'a' * 300}={EXAMPLE / 'alpha'}", "-o", "x"], 1, "Robot id must match"),
+        (
+            ["merge", f"A={EXAMPLE / 'alpha'}", f"B={EXAMPLE / 'alpha'}/", "-o", "x"],
+            1,
+            "is given twice (A and B)",
+        ),
         (["map", "--place-db", "http://127.0.0.1:9", "-o", "x", "--voxel", "1e-4"], 2, "--voxel"),
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--max-views", "0"], 2, "--max-views"),
         (["overlaps", "a", "b", "--place-db", "http://127.0.0.1:9", "--wait", "nan"], 2, "--wait"),

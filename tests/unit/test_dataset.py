@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fleetmap.camera import TUM_FR1
-from fleetmap.dataset import associate, load_depth, load_rgb, parse_robot_arg, read_recording
+from fleetmap.dataset import associate, load_depth, load_rgb, read_recording
 from fleetmap.errors import BadRobotData
 from tests.helpers import resized_recording
 
@@ -135,6 +135,8 @@ def test_unreadable_depth_image_is_named(tum_robot):
 
 
 def test_parse_robot_arg(tmp_path):
+    from fleetmap.robot_args import parse_robot_arg
+
     assert parse_robot_arg(f"alpha={tmp_path}") == ("alpha", tmp_path)
     assert parse_robot_arg(str(tmp_path)) == (None, tmp_path)
 

@@ -1,0 +1,44 @@
+"""Robots as the command line names them: `[NAME=]DIR` arguments, each recording once."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fleetmap.dataset import Recording, read_recording
+from fleetmap.errors import BadRobotData
+from fleetmap.frame import check_robot_id
+
+
+def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
+    """'NAME=DIR' or 'DIR' as (name or None, path); NAME a robot id, DIR given."""
+    if "=" in arg and not _exists(arg):
+        name, _, path = arg.partition("=")
+        if name and not path:  # 'A=' read the working folder
+            raise BadRobotData(f"{arg}: no robot folder after '='")
+        if name:  # a 300-letter name failed as "File name too long"
+            return check_robot_id(name), Path(path)
+    return None, Path(arg)
+
+
+def read_robot(arg: str, intrinsics_for, **kwargs) -> Recording:
+    """The recording a `[NAME=]DIR` argument names, read with `intrinsics_for(DIR)` (None:
+    the folder's own camera) and `read_recording`'s other keyword arguments."""
+    name, robot_dir = parse_robot_arg(arg)
+    return read_recording(robot_dir, name, intrinsics_for(robot_dir), **kwargs)
+
+
+def _exists(path: str) -> bool:
+    try:
+        return Path(path).exists()
+    except OSError:  # a name too long for the file system: no such file
+        return False
+
+
+def check_distinct(recs: list[Recording]) -> list[Recording]:
+    """`recs`, each recording once: one folder under two names merged with itself, unsaid."""
+    where = [Path(r.source or r.root).resolve() for r in recs]
+    for k, w in enumerate(where):
+        if w in where[:k]:
+            names = f"{recs[where.index(w)].robot_id} and {recs[k].robot_id}"
+            raise BadRobotData(f"{w} is given twice ({names}): one recording is one robot")
+    return recs
