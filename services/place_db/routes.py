@@ -250,7 +250,7 @@ async def overlaps(
     st: PlaceSettings,
     robot_a: str | None = None,
     robot_b: str | None = None,
-    wait: float = Query(0.0, ge=0.0, le=600.0),
+    wait: float = Query(0.0, ge=0.0, le=600.0, allow_inf_nan=False),
     source: Literal["all", "cascade", "link", "nominated"] = "all",
 ) -> s.Overlaps:
     """Verified keyframe pairs between two robots, or without robots the overlap graph.

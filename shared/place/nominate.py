@@ -57,8 +57,14 @@ def nominate(
 def nominated_overlaps(db, robot_a: str, robot_b: str, k: int = NOMINATED) -> list:
     """`nominate` between two robots of a `PlaceDB`, as overlaps with source "nominated"
     (no inliers: nothing was verified)."""
+    from fleetmap.errors import BadInput
     from fleetmap.place.types import Overlap
 
+    if robot_a == robot_b:  # each keyframe was nominated with itself
+        raise BadInput(
+            "Nominations pair two robots; a robot's own revisits are its overlaps with "
+            "source 'cascade'"
+        )
     for r in (robot_a, robot_b):
         db._code(r)  # UnknownRobot for a robot deleted meanwhile
     ids_a, ids_b = db.keyframe_ids(robot_a), db.keyframe_ids(robot_b)

@@ -214,3 +214,15 @@ def test_the_frameworks_refusals_carry_the_error_body(client):
     assert "wait" in bad_query.json()["detail"]
     nan = client.get("/map/cloud.ply", params={"voxel": "nan"})  # said "<= 1" before
     assert nan.status_code == 422 and "finite number" in nan.json()["detail"], nan.text
+    nan = client.get("/overlaps", params={"robot_a": "a", "robot_b": "b", "wait": "nan"})
+    assert nan.status_code == 422 and "finite number" in nan.json()["detail"], nan.text
+
+
+def test_a_robot_is_not_nominated_with_itself(client, sun3d_frames):
+    """Nominations between a robot and itself paired each keyframe with itself (an outside
+    tester's review): a robot's own revisits are its cascade overlaps."""
+    for d in sun3d_frames["robot_a"][:3]:
+        assert post_frame(client, "robot_a", d).status_code == 201
+    q = {"robot_a": "robot_a", "robot_b": "robot_a", "source": "nominated"}
+    r = client.get("/overlaps", params=q)
+    assert r.status_code == 422 and "pair two robots" in r.json()["detail"], r.text
