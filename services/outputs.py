@@ -149,7 +149,10 @@ def write_g2o(path: Path, ids: list[str], placed: dict, edges: dict) -> None:
     robot, or none placed, is a graph of no vertex; `FIX 0` of no vertex 0 and an
     IndexError on no robot before: an outside tester's review)."""
     idx = {r: k for k, r in enumerate(ids)}
-    lines = [f"# fleetmap pose graph: vertex k = robot {', '.join(ids)}"]
+    named = ", ".join(f"{idx[r]} {r}" for r in ids if r in placed)
+    unplaced = [r for r in ids if r not in placed]  # listed as vertices before: none are
+    lines = [f"# fleetmap pose graph: vertex robot: {named or 'none'}"]
+    lines += [f"# not placed (no vertex): {', '.join(unplaced)}"] * bool(unplaced)
     for r in ids:
         if r in placed:
             lines.append(f"VERTEX_SE3:QUAT {idx[r]} " + _g2o_pose(placed[r]))
