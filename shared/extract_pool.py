@@ -109,8 +109,7 @@ def _tasks(
     return [t for _, t in sorted(out, key=lambda x: x[0])]  # stable: robot order without
 
 
-@contextlib.contextmanager
-def _safe_path():
+def _start_fork_server() -> None:
     """The fork server started without the working folder on its import path. Python 3.11
     starts it with `python -c`, whose path begins with the working folder, and ignores the
     `sys_path` multiprocessing hands it: run from a folder holding a `fleetmap` folder (the
@@ -128,7 +127,6 @@ def _safe_path():
             del os.environ["PYTHONSAFEPATH"]
         else:
             os.environ["PYTHONSAFEPATH"] = saved
-    yield
 
 
 @contextlib.contextmanager
@@ -174,7 +172,8 @@ def extract_keyframes(
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["fleetmap.extract", "fleetmap.extract_pool"])
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init, initargs=(vocab_path,))
-    with _safe_path(), _main_hidden():  # workers start here, on submission
+    _start_fork_server()  # once a process; the workers fork from it
+    with _main_hidden():  # workers start here, on submission
         results = pool.map(_extract, tasks, chunksize=2)  # every task submitted now
 
     def ordered() -> Iterator[Keyframe]:
