@@ -37,16 +37,19 @@ def stream(recs, kf_index, client, vocab_path, speed: float, quiet: bool, worker
     errors: list[BaseException] = []
     bar = tqdm(total=total, desc="stream", unit="kf", disable=quiet)
     t0 = time.monotonic()
+    # set on an interrupt or a failure: posters stop at once, not after their queued
+    # keyframes (Ctrl-C at --speed 0.1 went on posting for about 8 s)
+    stop = threading.Event()
 
     def post(k: int, robot: str) -> None:
         try:
-            while (kf := queues[robot].get()) is not DONE:
-                if speed > 0:
-                    time.sleep(
-                        max(0.0, t0 + (kf.frame.stamp - first[robot]) / speed - time.monotonic())
-                    )
-                if counts[robot] == 0 and k > 0:
-                    registered[k - 1].wait()
+            while (kf := _next(queues[robot], stop)) is not DONE:
+                due = t0 + (kf.frame.stamp - first[robot]) / speed if speed > 0 else 0.0
+                if stop.wait(max(0.0, due - time.monotonic())):
+                    break
+                while counts[robot] == 0 and k > 0 and not registered[k - 1].wait(0.2):
+                    if stop.is_set():
+                        return
                 client.add_keyframe(kf.frame, view=kf.view)
                 counts[robot] += 1
                 registered[k].set()
@@ -62,15 +65,41 @@ def stream(recs, kf_index, client, vocab_path, speed: float, quiet: bool, worker
     keyframes = extract_keyframes(recs, kf_index, vocab_path, workers, views=True, by_time=True)
     try:
         _feed(keyframes, queues, errors)
+    except BaseException:
+        stop.set()
+        raise
     finally:
+        if errors:  # a poster failed: the others need not finish
+            stop.set()
         for r in ids:
-            queues[r].put(DONE)
+            _put_done(queues[r], stop)
         for p in posters:
             p.join()
         bar.close()
     if errors:
         raise errors[0]
     return {"keyframes": counts, "seconds": time.monotonic() - t0}
+
+
+def _next(q: queue.Queue, stop: threading.Event):
+    """The queue's next keyframe, or DONE once `stop` is set."""
+    while not stop.is_set():
+        try:
+            return q.get(timeout=0.2)
+        except queue.Empty:
+            continue
+    return DONE
+
+
+def _put_done(q: queue.Queue, stop: threading.Event) -> None:
+    """DONE after the queued keyframes; not waited for once `stop` is set (a poster that
+    stopped empties its queue no more)."""
+    while True:
+        try:
+            return q.put(DONE, timeout=0.2)
+        except queue.Full:
+            if stop.is_set():
+                return
 
 
 def _feed(keyframes, queues: dict, errors: list) -> None:

@@ -97,3 +97,42 @@ def test_a_client_hanging_up_mid_body_logs_one_info_line(tmp_path):
     log = svc.read_log()
     assert "Traceback" not in log and "ERROR" not in log, log[-3000:]
     assert log.count("client disconnected mid-request") == 5, log[-3000:]
+
+
+def test_an_interrupted_stream_posts_nothing_more(tmp_path, tum_rpy):
+    """Ctrl-C on `fleetmap stream --speed 0.1` of a robot with more keyframes than its
+    queue holds (64) interrupted the feeding, then waited for the posters to post every
+    keyframe queued, about one a second at that speed (an outside tester's review: 8 s to
+    exit): now they stop with it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    robot = tum_rpy  # 241 frames, over 64 keyframes
+    app = create_app(Settings(data_dir=tmp_path))
+    with serving(app) as (url, _):
+
+        def posted() -> int:
+            robots = httpx.get(url + "/robots", timeout=20).json()["robots"]
+            return sum(r["keyframes"] for r in robots)
+
+        cmd = [sys.executable, "-m", "fleetmap.services.cli", "-q", "stream", str(robot)]
+        proc = subprocess.Popen(
+            [*cmd, "--place-db", url, "--speed", "0.1"],
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "FLEETMAP_PLACE_DB_URL": url},
+        )
+        try:
+            end = time.monotonic() + 120
+            while posted() < 2:
+                assert proc.poll() is None and time.monotonic() < end, proc.stderr.read()
+                time.sleep(0.1)
+            before = posted()
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+        assert proc.returncode == 130 and "interrupted" in err, err
+        assert posted() <= before + 1  # at most the one in flight
