@@ -154,9 +154,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     from fleetmap.services.outputs import prepare_out
 
     out = Path(args.out)
-    prepare_out(out)
-    if args.voxel <= 0:
-        raise BadInput(f"--voxel must be positive, got {args.voxel}")
+    prepare_out(out)  # --voxel: at least 1 mm, the parser's type (`cli._voxel_m`)
     t0, voxel = time.perf_counter(), max(args.voxel, BASE_VOXEL_M)
     with PlaceDBClient(args.place_db, token=args.token, timeout=600) as client:
         m = client.live_map()
