@@ -1,4 +1,4 @@
-"""Every request's id, security headers and access-log line."""
+"""Every request's id, security headers and access-log line; HEAD answered as GET."""
 
 from __future__ import annotations
 
@@ -21,9 +21,33 @@ SECURITY_HEADERS = {
 }
 
 
+class HeadAsGet:
+    """HEAD answered as the GET of the same path without its body (RFC 9110, 9.3.2): uptime
+    checkers and load balancers probe with HEAD, which FastAPI's GET routes answer 405. A
+    path without GET still answers 405 (or 404)."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            await self.app(scope, receive, send)
+            return
+
+        async def headless(message) -> None:
+            if message["type"] == "http.response.body":
+                if message.get("more_body", False):
+                    return
+                message = {"type": "http.response.body", "body": b"", "more_body": False}
+            await send(message)
+
+        await self.app({**scope, "method": "GET", "fleetmap_head": True}, receive, headless)
+
+
 def install_middleware(app: FastAPI) -> None:
     """The request-id middleware: an id per request (the caller's if sane), the security
-    headers, no caching of data, and one log line (with fields for JSON logs)."""
+    headers, no caching of data, and one log line (with fields for JSON logs); outside it,
+    HEAD as GET (`HeadAsGet`)."""
 
     @app.middleware("http")
     async def _request_id(request: Request, call_next):
@@ -38,9 +62,10 @@ def install_middleware(app: FastAPI) -> None:
         if not request.url.path.startswith("/static/"):  # data and tokens: never cached
             response.headers.setdefault("cache-control", "no-store")
         ms = round(1000 * (time.perf_counter() - t), 1)
+        method = "HEAD" if request.scope.get("fleetmap_head") else request.method
         fields = {
             "request_id": rid,
-            "method": request.method,
+            "method": method,
             "path": request.url.path,
             "status": response.status_code,
             "ms": ms,
@@ -48,10 +73,12 @@ def install_middleware(app: FastAPI) -> None:
         log.info(
             "%s %s %s %d %.1fms",
             rid,
-            request.method,
+            method,
             request.url.path,
             response.status_code,
             ms,
             extra=fields,
         )
         return response
+
+    app.add_middleware(HeadAsGet)  # added last: outermost

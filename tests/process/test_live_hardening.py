@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import hashlib
+import logging
 import re
 import socket
 import threading
@@ -75,6 +76,26 @@ def test_every_response_carries_the_security_headers(tmp_path):
         assert f"'sha256-{digest}'" in csp and "default-src 'none'" in csp
         assert "unsafe-inline" not in csp.split("script-src")[1].split(";")[0]
         assert "history.replaceState" in script
+
+
+def test_head_is_answered_as_get_without_a_body(tmp_path, caplog):
+    """Session 58's round: uptime checkers probe with HEAD, which every GET route answered
+    405 (with a body). Now the GET's status and headers, no body; no GET: still 405."""
+    from fleetmap.services.aligner.main import create_app as create_aligner
+
+    with TestClient(create_app(Settings(data_dir=tmp_path))) as client:
+        for path in ("/", "/healthz", "/robots", "/map", "/map/overview.png"):
+            got, head = client.get(path), client.head(path)
+            assert (head.status_code, head.content) == (200, b""), path
+            assert head.headers["content-type"] == got.headers["content-type"], path
+            assert head.headers["x-content-type-options"] == "nosniff", path
+        assert client.head("/nope").status_code == 404
+        with caplog.at_level(logging.INFO, logger="fleetmap.http"):
+            client.head("/healthz")
+        assert any(" HEAD /healthz 200 " in r.getMessage() for r in caplog.records)
+    with TestClient(create_aligner()) as client:
+        assert client.head("/healthz").status_code == 200
+        assert client.head("/align").status_code == 405  # POST only
 
 
 def test_a_client_hanging_up_mid_body_logs_one_info_line(tmp_path):
