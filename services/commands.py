@@ -322,13 +322,11 @@ def cmd_merge(args: argparse.Namespace) -> int:
     """The main job: N robot folders in, one global map and report out."""
     require("fleetmap merge")
     from fleetmap.pictures import n_cascade
+    from fleetmap.robot_args import distinct_ids
     from fleetmap.services.merge import run_merge
     from fleetmap.services.outputs import prepare_out
 
-    recs = _read_robots(args, args.robots)
-    ids = [r.robot_id for r in recs]
-    if len(set(ids)) != len(ids):
-        raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
+    recs = distinct_ids(_read_robots(args, args.robots))
     out = Path(args.out)
     prepare_out(out)
     report = run_merge(
@@ -341,6 +339,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         token=args.token,
     )
+    ids = [r.robot_id for r in recs]
     merged = [r for r in ids if r not in report["unmerged"]]
     print(
         f"merged {len(merged)} of {len(ids)} robots into {report['reference']}'s frame "

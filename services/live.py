@@ -14,8 +14,6 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from fleetmap.errors import BadInput
-
 DONE = object()
 
 
@@ -123,13 +121,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
     """Replay robot recordings into a place database as the robots would stream them."""
     from fleetmap.client import PlaceDBClient
     from fleetmap.extract import keyframe_indices
+    from fleetmap.robot_args import distinct_ids
     from fleetmap.services.commands import _policy, _read_robots
     from fleetmap.services.merge import checked_vocabulary
 
-    recs = _read_robots(args, args.robots)
-    ids = [r.robot_id for r in recs]
-    if len(set(ids)) != len(ids):
-        raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
+    recs = distinct_ids(_read_robots(args, args.robots))
     kf_index = {r.robot_id: keyframe_indices(r, _policy(args)) for r in recs}
     if args.nice > 0 and hasattr(os, "nice"):  # the extraction workers inherit it
         os.nice(args.nice)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from fleetmap.dataset import Recording, read_recording
-from fleetmap.errors import BadRobotData
+from fleetmap.errors import BadInput, BadRobotData
 from fleetmap.frame import check_robot_id
 
 
@@ -41,4 +41,12 @@ def check_distinct(recs: list[Recording]) -> list[Recording]:
         if w in where[:k]:
             names = f"{recs[where.index(w)].robot_id} and {recs[k].robot_id}"
             raise BadRobotData(f"{w} is given twice ({names}): one recording is one robot")
+    return recs
+
+
+def distinct_ids(recs: list[Recording]) -> list[Recording]:
+    """`recs`, whose robot ids differ (a fleet job's: `merge`, `stream`)."""
+    ids = [r.robot_id for r in recs]
+    if len(set(ids)) != len(ids):
+        raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
     return recs

@@ -73,6 +73,17 @@ def test_version_and_help():
         (["simulate", "x", "--frames", "0"], 2, "--frames"),
         (["extract", str(EXAMPLE / "alpha"), "-o", "x", "--kf-rotation", "nan"], 2, "rotation"),
         (["stream", "nowhere", "--place-db", "http://127.0.0.1:9"], 1, "Robot folder not found"),
+        (
+            [
+                "stream",
+                f"x={EXAMPLE / 'alpha'}",
+                f"x={EXAMPLE / 'bravo'}",
+                "--place-db",
+                "http://x",
+            ],
+            1,
+            "Robot ids must differ",
+        ),
         (["stream", str(EXAMPLE / "alpha"), "--place-db", "http://127.0.0.1:9"], 1, "127.0.0.1:9"),
         (["map", "--place-db", "http://127.0.0.1:9", "-o", "/etc/hostname"], 1, "not a folder"),
         (["map", "--place-db", "http://127.0.0.1:9", "-o", "x"], 1, "127.0.0.1:9"),
