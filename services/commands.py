@@ -307,10 +307,7 @@ def cmd_align(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out, indent=2))
     elif out["merged"]:
-        print(
-            f"merged {rec_b.robot_id} into {rec_a.robot_id} ({out['method']}, "
-            f"{out['inliers']} inliers, held-out {out['holdout_residual_m']:.3f} m):"
-        )
+        print(f"merged {rec_b.robot_id} into {rec_a.robot_id} ({_fit_summary(out)}):")
         for row in out["transform"]:
             print("  " + " ".join(f"{v:10.5f}" for v in row))
     else:
@@ -385,3 +382,14 @@ def version() -> str:
         return version("fleetmap")
     except PackageNotFoundError:
         return "unknown (not installed)"
+
+
+def _fit_summary(fit: dict) -> str:
+    """The "method, N inliers, held-out R m" of an aligner answer, with what it holds (the
+    baselines' answers carry no held-out residual: `--method rigid` failed on it)."""
+    parts = [str(fit.get("method", "?"))]
+    if fit.get("inliers") is not None:
+        parts.append(f"{fit['inliers']} inliers")
+    if fit.get("holdout_residual_m") is not None:
+        parts.append(f"held-out {fit['holdout_residual_m']:.3f} m")
+    return ", ".join(parts)

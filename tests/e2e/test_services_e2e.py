@@ -32,6 +32,11 @@ def test_ingest_overlaps_align_recovers_the_known_transform(services, tum_robot_
     assert out["merged"], out
     dt, dr = transform_error(np.array(out["transform"]), T_a_b)
     assert dt < 0.05 and dr < 2.0
+    # a baseline's answer printed (it carries no held-out residual: a KeyError traceback
+    # after the alignment, session 59's outside tester)
+    argv = ["align", str(dir_a), str(dir_b), "--place-db", db, "--aligner", al]
+    assert main([*argv, "--method", "rigid", "--max-views", "3"]) == 0
+    assert "merged bravo into alpha (rigid" in capsys.readouterr().out
 
 
 def test_align_without_overlap_is_not_merged(services, tum_robot_dirs, tmp_path, capsys):
