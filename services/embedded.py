@@ -49,7 +49,7 @@ class Services:
         return self.place_db if kind == "place-db" else self.aligner
 
 
-def _app(kind: str, data_dir: Path | None):
+def _app(kind: str, data_dir: Path | None, vocabulary: Path | None = None):
     if kind == "place-db":
         from fleetmap.extract_pool import default_workers
         from fleetmap.services.place_db.config import Settings
@@ -58,6 +58,8 @@ def _app(kind: str, data_dir: Path | None):
         # the job asks for overlaps once every keyframe is in (`defer_overlaps`), then
         # detects them on every core (`OverlapWorker`)
         batch = {"defer_overlaps": True, "overlap_threads": min(default_workers(), 64)}
+        if vocabulary is not None:  # the job's --vocab: its keyframes' words are of it
+            batch["vocabulary"] = Path(vocabulary)
         settings = Settings(data_dir=data_dir, **batch) if data_dir else Settings()
         return create_app(settings, announce=False)
     from fleetmap.services.aligner.main import create_app as create_aligner
@@ -66,9 +68,15 @@ def _app(kind: str, data_dir: Path | None):
 
 
 @contextlib.contextmanager
-def embedded_service(kind: str, data_dir: Path | None = None, after: Callable | None = None):
+def embedded_service(
+    kind: str,
+    data_dir: Path | None = None,
+    after: Callable | None = None,
+    vocabulary: Path | None = None,
+):
     """A service on a free loopback port in a background thread, which also imports and
-    builds the app (once `after()` returned, if given); yields (URL, wait until ready)."""
+    builds the app (once `after()` returned, if given; a place database with `vocabulary`,
+    None: the shipped one); yields (URL, wait until ready)."""
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     built, box = threading.Event(), {}
@@ -79,7 +87,7 @@ def embedded_service(kind: str, data_dir: Path | None = None, after: Callable | 
                 after()
             import uvicorn
 
-            app = _app(kind, data_dir)
+            app = _app(kind, data_dir, vocabulary)
             # the job's own client on loopback: idle keep-alive connections stay open (60 s,
             # not uvicorn's 5), so that a connection the client reuses, on a machine whose
             # cores are busy, is never closed under a request (a drift merge once failed
@@ -128,13 +136,19 @@ def check_reachable(place_db: str | None, aligner: str | None, token: str | None
                 c.health()
 
 
-def start_services(stack: contextlib.ExitStack, place_db: str | None, aligner: str | None):
+def start_services(
+    stack: contextlib.ExitStack,
+    place_db: str | None,
+    aligner: str | None,
+    vocabulary: Path | None = None,
+):
     """`Services`: the given service URLs, or both services starting on free loopback
-    ports in the background (wait with `Services.ready`)."""
+    ports in the background (wait with `Services.ready`); the place database started here
+    with `vocabulary` (the job's `--vocab`; None: the shipped one)."""
     waits, first = {}, None
     if place_db is None:
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fleetmap-")))
-        place_db, first = stack.enter_context(embedded_service("place-db", tmp))
+        place_db, first = stack.enter_context(embedded_service("place-db", tmp, None, vocabulary))
         waits["place-db"] = lambda: (first(), default_kernel_threads())
     if aligner is None:  # its imports (Open3D) after the place database's: needed later
         aligner, waits["aligner"] = stack.enter_context(embedded_service("aligner", after=first))

@@ -73,6 +73,7 @@ def run_merge(
     (`fleetmap.fleet`) corrects maps that bend; where no map can bend by its gate it costs
     nothing (`fleetmap.fleet.correct.correct_fleet`)."""
     check_reachable(place_db, aligner, token)  # before any long work
+    load_vocabulary(vocab_path)  # a --vocab it cannot read: named before any work
     out.mkdir(parents=True, exist_ok=True)
     timing, t_all = dict.fromkeys(STAGES, 0.0), time.perf_counter()
     kf_index = {r.robot_id: keyframe_indices(r, params.keyframes) for r in recs}
@@ -81,7 +82,7 @@ def run_merge(
         keyframes = extract_keyframes(recs, kf_index, vocab_path, workers)  # runs meanwhile
         stack.callback(keyframes.close)
         with timed(timing, "start"):  # the time the job waited for its services
-            services = start_services(stack, place_db, aligner)  # they come up meanwhile
+            services = start_services(stack, place_db, aligner, vocab_path)  # meanwhile
             db = stack.enter_context(PlaceDBClient(services.ready("place-db"), token=token))
         checked_vocabulary(db, vocab_path)
         clouds, parts = ingest(keyframes, db, sum(map(len, kf_index.values())), timing, quiet)

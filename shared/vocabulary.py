@@ -163,7 +163,14 @@ class Vocabulary:
                     boundary=int(z["gist_boundary"]),
                 )
                 return cls(z["gist_centroids"], z["word_centroids"], params, str(z["source"]))
-        except (OSError, KeyError, ValueError, BadInput) as exc:
+        except ValueError as exc:
+            if "pickle" in str(exc):  # numpy's advice (allow_pickle) is not ours to give
+                raise BadVocabulary(
+                    f"Cannot read vocabulary {path}: not a fleetmap vocabulary (the .npz "
+                    "file `fleetmap vocab train` writes)"
+                ) from exc
+            raise BadVocabulary(f"Cannot read vocabulary {path}: {exc}") from exc
+        except (OSError, KeyError, BadInput) as exc:
             raise BadVocabulary(f"Cannot read vocabulary {path}: {exc}") from exc
 
 

@@ -25,3 +25,24 @@ def test_merge_report_holds_both_services_parameters(sun3d_merge):
     assert al["max_views"] == aligner.max_views >= params["max_views"]  # merge's fit in
     for secret in ("operator_token", "robot_tokens", "aligner_token"):
         assert secret not in db and secret not in al
+
+
+def test_merge_with_its_own_vocabulary(tmp_path):
+    """README's "Training a vocabulary for your own site": `merge --vocab FILE` extracted
+    with FILE while the place database it started itself loaded the shipped one, and
+    refused ("pass the same file with --vocab": it was). Now both use FILE."""
+    import json
+    from pathlib import Path
+
+    from fleetmap.services.cli import main
+
+    examples = Path(__file__).resolve().parents[2] / "examples"
+    example = examples / "fr1_pair"
+    vocab = tmp_path / "site.npz"  # from another robot's 16 keyframes
+    train = ["vocab", "train", str(examples / "fr1_rpy_fleet" / "alpha"), "--words", "64"]
+    assert main(["-q", *train, "-o", str(vocab)]) == 0
+    robots = [str(example / "alpha"), str(example / "bravo")]
+    assert main(["-q", "merge", *robots, "--vocab", str(vocab), "-o", str(tmp_path / "o")]) == 0
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["unmerged"] == []
+    assert report["parameters"]["place_db"]["vocabulary"] == str(vocab)

@@ -66,6 +66,11 @@ def test_version_and_help():
         ),
         (["map", "--place-db", "http://127.0.0.1:9", "-o", "x", "--voxel", "1e-4"], 2, "--voxel"),
         (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--max-views", "0"], 2, "--max-views"),
+        (  # it was "went away before it was ready": the place database's start failed
+            ["merge", str(EXAMPLE / "alpha"), "--vocab", "nowhere.npz", "-o", "x"],
+            1,
+            "Cannot read vocabulary nowhere.npz",
+        ),
         (["overlaps", "a", "b", "--place-db", "http://127.0.0.1:9", "--wait", "nan"], 2, "--wait"),
         (["serve", "place-db", "--port", "99999"], 2, "--port"),
         (["vocab", "train", "x", "-o", "y", "--words", "0"], 2, "--words"),
