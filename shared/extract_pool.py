@@ -83,7 +83,9 @@ def _extract(t: _Task) -> Keyframe:
     rgb, depth, k = t.reader.rgb(t.rgb_path), t.reader.depth(t.depth_path), t.reader.intrinsics
     frame = _extractor(t.robot_id, t.stamp, rgb, depth, k, t.T_map_cam)
     points, colours = view_points(rgb, depth, k, t.T_map_cam, CLOUD_STRIDE, CLOUD_MAX_DEPTH_M)
-    view = encode_view(rgb, depth) if t.view else None
+    # a frame without a depth reading (a sensor warming up, a covered lens) is a keyframe
+    # without a view: the aligner could not use it, and the place database refuses it
+    view = encode_view(rgb, depth) if t.view and depth.any() else None
     return Keyframe(t.robot_id, t.index, frame, points.astype(np.float32), colours, view)
 
 

@@ -3,12 +3,16 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from fleetmap.correspondences import RGBDView
 from fleetmap.dataset import FrameRecord, Recording
-from fleetmap.errors import BadRobotData
+from fleetmap.errors import BadInput, BadRobotData
 from fleetmap.fleet.types import DEFAULT_VIEWS, Fit
+
+log = logging.getLogger(__name__)
 
 
 def overlaps_to_align(db, robot_a: str, robot_b: str, wait: float = 0.0) -> list[dict]:
@@ -156,8 +160,23 @@ def local_views(
 
 
 def _paired(rec_a: Recording, rec_b: Recording, ia: list[int], ib: list[int]) -> list:
-    va, vb = [load_view(rec_a, i) for i in ia], [load_view(rec_b, j) for j in ib]
+    va, vb = _with_depth(rec_a, ia), _with_depth(rec_b, ib)
     return [(x, y) for x in va for y in vb]
+
+
+def _with_depth(rec: Recording, chosen: list[int]) -> list[RGBDView]:
+    """The chosen frames' views but those whose depth image holds no reading (a sensor
+    warming up, a covered lens: one such frame failed the whole merge), said once each."""
+    views = []
+    for i in chosen:
+        try:
+            views.append(load_view(rec, i))
+        except BadInput as exc:
+            if not rec.frames[i].depth_path or "no valid reading" not in str(exc):
+                raise
+            log.warning("%s: %s has no depth reading: not aligned", rec.robot_id,
+                        rec.frames[i].depth_path)  # fmt: skip
+    return views
 
 
 def pair_views(

@@ -72,7 +72,11 @@ def link_rows(xs, rx: int, ys, ry: int, T_y_x: np.ndarray, cache=None, cy=None) 
         cy = np.array([centre(fy) for _, fy in ys]).reshape(-1, 3)
     near = []
     for _, fx in xs:
-        c = T_y_x[:3, :3] @ centre(fx) + T_y_x[:3, 3]
+        c = centre(fx)
+        if not np.isfinite(c).all():  # no map point (no depth reading): near nothing
+            near.append(np.zeros(0, np.intp))
+            continue
+        c = T_y_x[:3, :3] @ c + T_y_x[:3, 3]
         near.append(np.flatnonzero(np.linalg.norm(cy - c, axis=1) < LINK_NEAR_M))
     by_y: dict[int, list[int]] = {}
     for i, ks in enumerate(near):

@@ -151,3 +151,29 @@ def test_merge_hololens_robots_that_revisit_a_kitchen(hololens, tmp_path):
     T_true = np.loadtxt(hololens / "T_a_b.txt")
     err = _mean_map_error(hololens / "hl_b", np.array(report["transforms"]["B"]), T_true)
     assert err < 0.025, err
+
+
+def test_frames_without_a_depth_reading_are_left_out_not_fatal(tmp_path, caplog):
+    """A sensor warming up or a covered lens gives depth images of zeros: one such frame
+    failed the whole merge ("Depth image has no valid reading", naming neither robot nor
+    file; session 59's outside tester). Now they are not aligned, said once each, and the
+    robots merge on their other frames."""
+    import shutil
+
+    import cv2
+
+    fleet = Path(__file__).resolve().parents[2] / "examples" / "fr1_rpy_fleet"
+    alpha = tmp_path / "alpha"
+    shutil.copytree(fleet / "alpha", alpha)
+    blank = sorted((alpha / "depth").glob("*.png"))[::2]
+    for png in blank:
+        cv2.imwrite(str(png), np.zeros_like(cv2.imread(str(png), cv2.IMREAD_UNCHANGED)))
+    out = tmp_path / "out"
+    assert main(["-q", "merge", str(alpha), str(fleet / "bravo"), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["unmerged"] == [], report["unmerged_reasons"]
+    T_true = json.loads((fleet / "T_true.json").read_text())
+    said = [r.getMessage() for r in caplog.records if "has no depth reading" in r.getMessage()]
+    assert said and all(any(p.name in m for p in blank) for m in said), said
+    dt, dr = transform_error(np.array(report["transforms"]["bravo"]), np.array(T_true["bravo"]))
+    assert dt < 0.05 and dr < 2.0, (dt, dr)
