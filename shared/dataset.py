@@ -217,7 +217,14 @@ def _of_images(intrinsics: Intrinsics, first: Path, origin: Path | str | None) -
     not their 640x480; "given": the caller's, taken as they are (the CLI's flags check
     their own)."""
     h, w = load_rgb(first).shape[:2]
-    if origin is None and (w, h) != (intrinsics.width, intrinsics.height):
+    if origin is None and (w, h) == (intrinsics.width, intrinsics.height):
+        k = intrinsics  # said: a SUN3D folder without it read its millimetres as 1/5000 m
+        log.warning(
+            "%s: no camera.json: the TUM fr1 defaults taken (fx %.1f fy %.1f cx %.1f cy %.1f, "
+            "%g depth units per metre); for another camera give camera.json or --fx --fy "
+            "--cx --cy --depth-scale", first.parent.parent, k.fx, k.fy, k.cx, k.cy, k.depth_scale,
+        )  # fmt: skip
+    elif origin is None:
         log.warning(
             "%s is %dx%d, and there is no camera.json: the TUM fr1 defaults taken in its place "
             "are a 640x480 camera's, so the map's geometry will be off; give camera.json or "

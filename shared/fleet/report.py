@@ -95,6 +95,8 @@ def merge_report(recs, kf_index, placement: Placement, overlaps, fits: list[Fit]
                 (r.file_intrinsics or r.intrinsics).width,
                 (r.file_intrinsics or r.intrinsics).height,
             ],
+            # the camera read (camera.json, the flags or the TUM fr1 defaults), as the files hold it
+            "camera": (r.file_intrinsics or r.intrinsics).to_dict(),
         }
         for r in recs
     }

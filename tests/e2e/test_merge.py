@@ -32,6 +32,8 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys, caplog):
     report = json.loads((out / "report.json").read_text())
     assert report["reference"] == "alpha" and report["unmerged"] == []
     assert report["robots"]["bravo"]["keyframes"] == 1
+    camera = report["robots"]["bravo"]["camera"]  # no camera.json: the defaults, recorded
+    assert (camera["fx"], camera["depth_scale"], camera["width"]) == (517.3, 5000.0, 640)
     np.testing.assert_allclose(report["transforms"]["alpha"], np.eye(4))
     T = np.array(report["transforms"]["bravo"])
     dt, dr = transform_error(T, np.loadtxt(EXAMPLE / "T_alpha_bravo.txt"))

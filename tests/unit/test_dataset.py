@@ -291,7 +291,10 @@ def test_camera_mistakes_are_named_where_they_are_read(tum_robot, caplog):
 
     from fleetmap.dataset import overridden
 
-    rec = read_recording(tum_robot)
+    with caplog.at_level("WARNING", logger="fleetmap.dataset"):  # 640x480: said too
+        rec = read_recording(tum_robot)  # (a SUN3D folder's millimetres read as 1/5000 m)
+    assert "no camera.json: the TUM fr1 defaults taken (fx 517.3" in caplog.text
+    caplog.clear()
     for f in rec.frames:  # the same robot at 540x360: not the defaults' camera
         for path in (f.rgb_path, f.depth_path):
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -348,7 +351,8 @@ def test_poses_whose_quaternions_are_not_unit_are_said(tum_robot, caplog):
     text = gt.read_text()
     with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
         read_recording(tum_robot)
-    assert not caplog.text  # TUM's own, four decimals: unit within rounding
+    said = [r for r in caplog.records if r.name == "fleetmap.tum_lists"]
+    assert not said  # TUM's own, four decimals: unit within rounding
     rows = [ln.split() for ln in text.splitlines() if not ln.startswith("#")]
     gt.write_text("".join(" ".join([r[0], str(i), *r[1:]]) + "\n" for i, r in enumerate(rows)))
     with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
