@@ -122,10 +122,13 @@ def _number(
 
 _voxel_m = _number(f"voxel (metres, {MIN_VOXEL_M} or more)", MIN_VOXEL_M, above=False)
 _positive_count = _number("count (a whole number of 1 or more)", 0, above=True, integer=True)
-_seconds = _number("seconds (a number of 0 or more)", 0, above=False)
+#: waits: up to a day (1e12 s overflowed the clock: a traceback)
+_seconds = _number("seconds (0 to 86400)", 0, above=False, high=86400)
 _threshold = _number("threshold (0 or more; inf: never)", 0, above=False, finite=False)
 _port = _number("port (1-65535)", 0, above=True, integer=True, high=65535)
 _speed = _number("speed (0 or more)", 0, above=False)
+_seed = _number("seed (a whole number from 0 to 2147483647)", -1, above=True, integer=True,
+                high=2**31 - 1)  # fmt: skip
 
 
 def _url_arg(p: argparse.ArgumentParser, flag: str, env: str, required: bool, what: str) -> None:
@@ -180,7 +183,7 @@ def _data_commands(sub) -> None:
     p.add_argument("--gist-clusters", type=_positive_count, default=8, help="GIST codebook size")
     p.add_argument("--words", type=_positive_count, default=500, help="SIFT visual words")
     p.add_argument("--stride", type=_positive_count, default=1, help="every n-th image of a folder")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--source", default="", help="text recorded as the training source")
     p.set_defaults(func=commands.cmd_vocab_train)
 
@@ -194,7 +197,7 @@ def _data_commands(sub) -> None:
     p.add_argument("out", metavar="OUT_DIR")
     p.add_argument("--robots", type=_positive_count, default=3, help="how many robots")
     p.add_argument("--frames", type=_positive_count, default=30, help="frames per robot")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed")
     p.set_defaults(func=commands.cmd_simulate)
 
 

@@ -117,8 +117,10 @@ def cmd_extract(args: argparse.Namespace) -> int:
 def cmd_vocab_train(args: argparse.Namespace) -> int:
     """Train the GIST codebook and SIFT words (thesis Algorithm 1)."""
     require("fleetmap vocab train", ("faiss",))
+    from fleetmap.services.outputs import prepare_file
     from fleetmap.training import collect_images, train_from_images
 
+    prepare_file(Path(args.output))
     paths = collect_images(args.inputs, stride=args.stride)
     vocab = train_from_images(
         paths,
@@ -358,9 +360,11 @@ def cmd_merge(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     """A synthetic fleet recording with the true transforms beside it."""
     require("fleetmap simulate", ("scipy",))
+    from fleetmap.services.outputs import prepare_empty
     from fleetmap.simulate import simulate_fleet
 
     out = Path(args.out)
+    prepare_empty(out)
     simulate_fleet(
         out,
         args.robots,

@@ -49,6 +49,31 @@ def prepare_out(out: Path) -> None:
         log.info("%s: %d outputs of a previous run removed", out, len(stale))
 
 
+def prepare_file(path: Path, flag: str = "-o") -> None:
+    """An output file's place checked before the work that makes it (`vocab train` trained
+    for minutes, then failed on a missing or read-only folder): its folder made where
+    missing and written to once, the name not a folder."""
+    if path.is_dir():
+        raise BadInput(f"{flag} {path} is a folder, where this writes a file")
+    probe = path.parent / f".{path.name}.probe"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise BadInput(f"{flag} {path}: cannot write there ({exc.strerror})") from None
+
+
+def prepare_empty(out: Path) -> None:
+    """A folder this fills whole (`simulate`): new or empty, so that nothing of an earlier
+    run stays beside this one's (robot1 of a two-robot run beside a one-robot run's
+    T_true.json)."""
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"{out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        raise BadInput(f"{out} is not empty: give a new or empty folder")
+
+
 @dataclasses.dataclass
 class Drawing:
     """What the pictures need from the placed maps (all in the reference frame)."""

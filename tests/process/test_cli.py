@@ -76,6 +76,19 @@ def test_version_and_help():
         (["vocab", "train", "x", "-o", "y", "--words", "0"], 2, "--words"),
         (["vocab", "train", "x", "-o", "y", "--stride", "-1"], 2, "--stride"),
         (["simulate", "x", "--frames", "0"], 2, "--frames"),
+        (["simulate", "x", "--seed", "-5"], 2, "--seed"),  # was numpy's traceback
+        (["overlaps", "a", "b", "--place-db", "http://x", "--wait", "1e12"], 2, "--wait"),
+        (  # it trained, then failed on the missing folder: checked first now
+            [
+                "vocab",
+                "train",
+                str(ROOT / "examples" / "fr1_rpy_fleet" / "alpha"),
+                "-o",
+                "/etc/hostname/site.npz",
+            ],
+            1,
+            "-o /etc/hostname/site.npz: cannot write there",
+        ),  # fmt: skip
         (["extract", str(EXAMPLE / "alpha"), "-o", "x", "--kf-rotation", "nan"], 2, "rotation"),
         (["stream", "nowhere", "--place-db", "http://127.0.0.1:9"], 1, "Robot folder not found"),
         (
@@ -243,3 +256,13 @@ def test_tokens_from_a_secrets_folder(tmp_path):
         assert "from-a-file" not in svc.read_log()
     finally:
         svc.stop()
+
+
+def test_simulate_refuses_a_folder_holding_an_earlier_run(tmp_path, capsys):
+    """A one-robot run into a two-robot run's folder left robot1 beside a T_true.json that
+    lists robot0 alone (session 59's outside tester)."""
+    out = tmp_path / "sim"
+    assert main(["-q", "simulate", str(out), "--robots", "2", "--frames", "2"]) == 0
+    assert main(["-q", "simulate", str(out), "--robots", "1", "--frames", "2"]) == 1
+    assert "is not empty: give a new or empty folder" in capsys.readouterr().err
+    assert set(json.loads((out / "T_true.json").read_text())) == {"robot0", "robot1"}
