@@ -22,7 +22,14 @@ import numpy as np
 
 from fleetmap.geometry import apply, invert, matrix_to_quat
 
-PLY_TYPES = {"float": "<f4", "uchar": "u1", "ushort": "<u2", "int": "<i4", "uint": "<u4"}
+PLY_TYPES = {
+    "float": "<f4",
+    "uchar": "u1",
+    "ushort": "<u2",  # earlier builds' robot index
+    "uint16": "<u2",
+    "int": "<i4",
+    "uint": "<u4",
+}
 TOPIC_TF, TOPIC_OVERLAPS = "/tf", "/fleet/overlaps"
 LINE_COLOUR = (1.0, 0.85, 0.1, 1.0)  # overlaps: yellow over image-coloured clouds
 

@@ -195,7 +195,8 @@ def write_ply(
 ) -> None:
     """Binary little-endian PLY: points (N, 3) as float32 x y z, colours (N, 3) as uchar
     red green blue (given in 0..1 floats or uint8), and optionally a per-point `robot`
-    index (ushort) that CloudCompare, PCL and Open3D's tensor reader show as a scalar field."""
+    index (uint16) that CloudCompare, PCL and Open3D's tensor reader show as a scalar field
+    (Open3D's reader skipped it as "ushort", the same type under its older name)."""
     Path(path).write_bytes(ply_bytes(points, colors, robot))
 
 
@@ -213,7 +214,7 @@ def ply_bytes(
         props += ["uchar red", "uchar green", "uchar blue"]
     if robot is not None:
         fields.append(("robot", "<u2"))
-        props.append("ushort robot")
+        props.append("uint16 robot")
     rows = np.empty(len(points), dtype=fields)
     for k, axis in enumerate("xyz"):
         rows[axis] = points[:, k]

@@ -128,7 +128,7 @@ def test_streamed_fleet_is_merged_live_and_written_by_map(live, sim_fleet, tmp_p
     assert (out / "overview.png").stat().st_size > 10_000
     assert (out / "overlap_matrix.png").stat().st_size > 5_000
     ply = (out / "merged.ply").read_bytes()
-    assert b"property ushort robot" in ply[:400]
+    assert b"property uint16 robot" in ply[:400]
     assert int(ply.split(b"element vertex ")[1].split()[0]) > 1000
     g2o = (out / "pose_graph.g2o").read_text()
     n = g2o.count("VERTEX_SE3:QUAT")

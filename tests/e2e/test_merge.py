@@ -43,7 +43,7 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys, caplog):
     assert report["schema_version"] == 2 and "T_ref_R" in report["transform_convention"]
     ply = (out / "merged.ply").read_bytes()
     header = ply[: ply.index(b"end_header")].decode()
-    assert "property ushort robot" in header and "property uchar red" in header
+    assert "property uint16 robot" in header and "property uchar red" in header
     n = int(header.split("element vertex ")[1].split()[0])
     rows = np.frombuffer(ply[ply.index(b"end_header") + 11 :], dtype=PLY_ROW, count=n)
     assert set(np.unique(rows["robot"])) == {0, 1}  # both robots, indexed in input order
@@ -52,6 +52,8 @@ def test_merge_bundled_pair_recovers_ground_truth(tmp_path, capsys, caplog):
 
     pcd = o3d.io.read_point_cloud(str(out / "merged.pcd"))
     np.testing.assert_allclose(np.asarray(pcd.points), np.c_[rows["x"], rows["y"], rows["z"]])
+    ply3d = o3d.t.io.read_point_cloud(str(out / "merged.ply"))  # it skipped "ushort"
+    np.testing.assert_array_equal(ply3d.point["robot"].numpy().ravel(), rows["robot"])
     g2o = (out / "pose_graph.g2o").read_text().splitlines()
     assert sum(line.startswith("VERTEX_SE3:QUAT") for line in g2o) == 2
     edge = next(line for line in g2o if line.startswith("EDGE_SE3:QUAT")).split()
