@@ -233,8 +233,10 @@ def ingest_robot(robot_arg: str, client, args: argparse.Namespace, vocab) -> tup
 def cmd_ingest(args: argparse.Namespace) -> int:
     """Select keyframes of robot folders, compute their frame structures and POST them."""
     from fleetmap.client import PlaceDBClient
+    from fleetmap.robot_args import arg_robot_id, check_ids
     from fleetmap.services.merge import checked_vocabulary
 
+    check_ids([arg_robot_id(a) for a in args.robots])
     with PlaceDBClient(args.place_db, token=args.token) as client:
         vocab = checked_vocabulary(client, args.vocab)
         for robot in args.robots:
@@ -389,8 +391,7 @@ def version() -> str:
 
 
 def _fit_summary(fit: dict) -> str:
-    """The "method, N inliers, held-out R m" of an aligner answer, with what it holds (the
-    baselines' answers carry no held-out residual: `--method rigid` failed on it)."""
+    """An aligner answer's "method, N inliers, held-out R m", as far as it holds them."""
     parts = [str(fit.get("method", "?"))]
     if fit.get("inliers") is not None:
         parts.append(f"{fit['inliers']} inliers")

@@ -24,7 +24,13 @@ def read_robot(arg: str, intrinsics_for, **kwargs) -> Recording:
     """The recording a `[NAME=]DIR` argument names, read with `intrinsics_for(DIR)` (None:
     the folder's own camera) and `read_recording`'s other keyword arguments."""
     name, robot_dir = parse_robot_arg(arg)
-    return read_recording(robot_dir, name, intrinsics_for(robot_dir), **kwargs)
+    rec = read_recording(robot_dir, name, intrinsics_for(robot_dir), **kwargs)
+    if name is None:  # the folder's name: refused only where the first keyframe was encoded
+        try:
+            check_robot_id(rec.robot_id)
+        except BadInput as exc:
+            raise BadInput(f"{exc} (the folder's name): give one, as NAME={robot_dir}") from None
+    return rec
 
 
 def _exists(path: str) -> bool:
@@ -46,7 +52,20 @@ def check_distinct(recs: list[Recording]) -> list[Recording]:
 
 def distinct_ids(recs: list[Recording]) -> list[Recording]:
     """`recs`, whose robot ids differ (a fleet job's: `merge`, `stream`)."""
-    ids = [r.robot_id for r in recs]
+    check_ids([r.robot_id for r in recs])
+    return recs
+
+
+def arg_robot_id(arg: str) -> str:
+    """The robot id a `[NAME=]DIR` argument gives, before its folder is read (as
+    `read_recording` names it: NAME, else the folder's name or the bag's stem)."""
+    from fleetmap.bags import is_bag
+
+    name, path = parse_robot_arg(arg)
+    return name or (path.resolve().stem if is_bag(path) else path.resolve().name)
+
+
+def check_ids(ids: list[str]) -> None:
+    """Robot ids of one command: each once (`ingest x=A x=B` stored B under A's name)."""
     if len(set(ids)) != len(ids):
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
-    return recs

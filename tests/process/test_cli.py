@@ -77,6 +77,17 @@ def test_version_and_help():
         (["vocab", "train", "x", "-o", "y", "--stride", "-1"], 2, "--stride"),
         (["simulate", "x", "--frames", "0"], 2, "--frames"),
         (["simulate", "x", "--seed", "-5"], 2, "--seed"),  # was numpy's traceback
+        (  # both stored as one robot x
+            [
+                "ingest",
+                f"x={EXAMPLE / 'alpha'}",
+                f"x={EXAMPLE / 'bravo'}",
+                "--place-db",
+                "http://x",
+            ],
+            1,
+            "Robot ids must differ",
+        ),
         (["overlaps", "a", "b", "--place-db", "http://x", "--wait", "1e12"], 2, "--wait"),
         (  # it trained, then failed on the missing folder: checked first now
             [
@@ -266,3 +277,15 @@ def test_simulate_refuses_a_folder_holding_an_earlier_run(tmp_path, capsys):
     assert main(["-q", "simulate", str(out), "--robots", "1", "--frames", "2"]) == 1
     assert "is not empty: give a new or empty folder" in capsys.readouterr().err
     assert set(json.loads((out / "T_true.json").read_text())) == {"robot0", "robot1"}
+
+
+def test_a_folder_whose_name_is_no_robot_id_is_told_to_name_it(tmp_path, capsys):
+    """'robot 1' failed where its first keyframe was encoded, without the way out that
+    merge's duplicate ids give (NAME=DIR; session 59's outside tester)."""
+    import shutil
+
+    robot = tmp_path / "robot 1"
+    shutil.copytree(EXAMPLE / "alpha", robot)
+    assert main(["-q", "extract", str(robot), "-o", str(tmp_path / "o")]) == 1
+    assert f"(the folder's name): give one, as NAME={robot}" in capsys.readouterr().err
+    assert main(["-q", "extract", f"r1={robot}", "-o", str(tmp_path / "o")]) == 0
