@@ -3,10 +3,12 @@
 A ROS 1 `.bag`, a ROS 2 bag folder (`metadata.yaml`, sqlite3 or MCAP storage) or a lone
 `.mcap`/`.db3` file is turned into the TUM layout (CONTRACT.md section 1) in a cache folder,
 once per bag and topic choice, and every later stage reads that folder: colour from
-`sensor_msgs/Image` (rgb8, bgr8, rgba8, bgra8, mono8), depth from `sensor_msgs/Image` (16UC1
-in millimetres, or 32FC1 in metres, stored as millimetres), intrinsics from
-`sensor_msgs/CameraInfo`, camera-to-map poses from `geometry_msgs/PoseStamped` or
-`nav_msgs/Odometry` (frame_id = the robot's map frame). Topics are found by message type
+`sensor_msgs/Image` (rgb8, bgr8, rgba8, bgra8, mono8) or `sensor_msgs/CompressedImage`
+(JPEG or PNG, as image_transport's `compressed` writes it and most bags hold colour), depth
+from `sensor_msgs/Image` (16UC1 in millimetres, or 32FC1 in metres, stored as millimetres),
+intrinsics from `sensor_msgs/CameraInfo`, camera-to-map poses from
+`geometry_msgs/PoseStamped` or `nav_msgs/Odometry` (frame_id = the robot's map frame).
+Topics are found by message type
 when there is one of each (two images: the one with a depth encoding is depth), else named
 with `BagTopics`.
 """
@@ -28,6 +30,7 @@ from fleetmap.errors import BadRobotData
 from fleetmap.geometry import pose_to_tum
 
 IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
 INFO = "sensor_msgs/msg/CameraInfo"
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
 DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
@@ -113,23 +116,25 @@ def _images(reader, conns, topics: BagTopics):
     their first message's encoding."""
     if topics.rgb and topics.depth:
         return (
-            _pick(conns, (IMAGE,), topics.rgb, "colour", "--rgb-topic"),
-            _pick(conns, (IMAGE,), topics.depth, "depth", "--depth-topic"),
+            _pick(conns, (IMAGE, COMPRESSED), topics.rgb, "colour", "--rgb-topic"),
+            _pick(conns, (IMAGE, COMPRESSED), topics.depth, "depth", "--depth-topic"),
         )
-    images = [c for c in conns if c.msgtype == IMAGE]
+    images = [c for c in conns if c.msgtype in (IMAGE, COMPRESSED)]
     if not images:
-        raise BadRobotData(f"no {IMAGE} topic in the bag: it holds no colour or depth images")
+        raise BadRobotData(
+            f"no {IMAGE} or {COMPRESSED} topic in the bag: it holds no colour or depth images"
+        )
     rgb, depth = [], []
     for c in images:
         for _, _, msg in _messages(reader, [c]):  # the first message's encoding
-            (depth if msg.encoding in DEPTH_ENCODINGS else rgb).append(c)
+            (depth if _is_depth(msg) else rgb).append(c)
             break
     if not rgb and not depth:  # topics declared, nothing recorded on them
         raise BadRobotData(f"the image topics {sorted(c.topic for c in images)} hold no message")
     if topics.rgb:
-        rgb = [_pick(conns, (IMAGE,), topics.rgb, "colour", "--rgb-topic")]
+        rgb = [_pick(conns, (IMAGE, COMPRESSED), topics.rgb, "colour", "--rgb-topic")]
     if topics.depth:
-        depth = [_pick(conns, (IMAGE,), topics.depth, "depth", "--depth-topic")]
+        depth = [_pick(conns, (IMAGE, COMPRESSED), topics.depth, "depth", "--depth-topic")]
     if len(rgb) != 1 or len(depth) != 1:
         raise BadRobotData(
             f"colour image topics {sorted(c.topic for c in rgb)}, depth image topics "
@@ -142,7 +147,30 @@ def _stamp(msg) -> float:
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
+def _is_depth(msg) -> bool:
+    """Whether an image message holds depth: its encoding, or image_transport's
+    compressedDepth format."""
+    if hasattr(msg, "encoding"):
+        return msg.encoding in DEPTH_ENCODINGS
+    return "compressedDepth" in msg.format
+
+
+def _decoded(msg, depth: bool) -> np.ndarray:
+    """A CompressedImage's colour as BGR; compressed depth refused, naming the way out."""
+    if depth:
+        raise BadRobotData(
+            f"compressed depth ({msg.format!r}) is not read: record depth as {IMAGE} "
+            "(16UC1 in millimetres or 32FC1 in metres)"
+        )
+    img = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise BadRobotData(f"a compressed colour image ({msg.format!r}) that does not decode")
+    return img
+
+
 def _image(msg, depth: bool) -> np.ndarray:
+    if not hasattr(msg, "encoding"):  # a CompressedImage
+        return _decoded(msg, depth)
     h, w, enc = msg.height, msg.width, msg.encoding
     data = np.asarray(msg.data, dtype=np.uint8)
     if h < 1 or w < 1 or msg.step < w or data.size < h * msg.step:
