@@ -19,9 +19,10 @@ log = logging.getLogger("fleetmap")
 
 def _add_camera_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("camera overrides (default: camera.json, else TUM fr1)")
-    for name in ("fx", "fy", "cx", "cy"):
-        g.add_argument(f"--{name}", type=float)
-    g.add_argument("--depth-scale", type=float, help="depth units per metre (TUM: 5000)")
+    for name in ("fx", "fy", "cx", "cy"):  # plausibility for the image size: where read
+        g.add_argument(f"--{name}", type=_number(f"{name} (pixels, above 0)", 0, above=True))
+    scale = _number("depth scale (units per metre, above 0)", 0, above=True)
+    g.add_argument("--depth-scale", type=scale, help="depth units per metre (TUM: 5000)")
 
 
 def _add_keyframe_args(p: argparse.ArgumentParser) -> None:

@@ -77,6 +77,8 @@ def test_version_and_help():
         (["vocab", "train", "x", "-o", "y", "--stride", "-1"], 2, "--stride"),
         (["simulate", "x", "--frames", "0"], 2, "--frames"),
         (["simulate", "x", "--seed", "-5"], 2, "--seed"),  # was numpy's traceback
+        (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--fx", "nan"], 2, "--fx"),  # was 1
+        (["merge", str(EXAMPLE / "alpha"), "-o", "x", "--depth-scale", "0"], 2, "--depth-scale"),
         (  # both stored as one robot x
             [
                 "ingest",
