@@ -165,9 +165,12 @@ def read_recording(
             f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
         )
     dropped = len(rgb) - len(frames)  # TUM's association: no frame left out unsaid
+    twice = len(rgb) - len({r[0] for r in rgb})  # one depth and pose for the first only
+    why = f"{dropped} without depth or a pose within {MAX_ASSOCIATION_GAP_S} s" + (
+        f", {twice} of them at a stamp listed before" if twice else "")  # fmt: skip
     (log.warning if dropped else log.info)(
         "%s: %d associated frames of %d colour images%s", robot_id, len(frames), len(rgb),
-        f" ({dropped} without depth or a pose within {MAX_ASSOCIATION_GAP_S} s)" * bool(dropped),
+        f" ({why})" * bool(dropped),
     )  # fmt: skip
     native = _of_images(intrinsics, frames[0].rgb_path, origin)
     work = working_intrinsics(native)

@@ -341,6 +341,11 @@ def test_times_in_nanoseconds_are_read_and_frames_left_out_are_said(tum_robot, c
     with caplog.at_level("WARNING", logger="fleetmap.dataset"):
         assert len(read_recording(tum_robot)) == 2
     assert "2 associated frames of 3 colour images (1 without depth or a pose" in caplog.text
+    caplog.clear()
+    rgb.write_text(text + f"{rows[1][0]} {rows[0][1]}\n")  # a stamp listed twice
+    with caplog.at_level("WARNING", logger="fleetmap.dataset"):
+        assert len(read_recording(tum_robot)) == 2
+    assert "0.02 s, 1 of them at a stamp listed before)" in caplog.text
 
 
 def test_poses_whose_quaternions_are_not_unit_are_said(tum_robot, caplog):
