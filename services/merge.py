@@ -69,9 +69,8 @@ def run_merge(
 ) -> dict:
     """The whole job; writes OUT/report.json, merged.ply, pose_graph.g2o, trajectories/,
     overview.png, overlap_matrix.png, fleet.mcap; the links are registered meanwhile.
-    `params.correct_drift` (on by default): the keyframe pose graph over the fleet
-    (`fleetmap.fleet`) corrects maps that bend; where no map can bend by its gate it costs
-    nothing (`fleetmap.fleet.correct.correct_fleet`)."""
+    `params.correct_drift` (on by default): the keyframe pose graph over the fleet corrects
+    maps that bend; it costs nothing where none may (`fleet.correct.correct_fleet`)."""
     check_reachable(place_db, aligner, token)  # before any long work
     load_vocabulary(vocab_path)  # a --vocab it cannot read: named before any work
     out.mkdir(parents=True, exist_ok=True)
