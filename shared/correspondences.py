@@ -15,7 +15,7 @@ from functools import partial
 import numpy as np
 
 from fleetmap.camera import Intrinsics, backproject_pixels
-from fleetmap.errors import BadInput
+from fleetmap.errors import BadInput, NoDepthReading
 from fleetmap.feature_cache import Recent, cached_local, digest
 from fleetmap.features import FeatureParams, LocalFeatures, detect_and_describe
 from fleetmap.geometry import apply, check_transform
@@ -50,7 +50,7 @@ class RGBDView:
                 f"Depth of shape {self.depth.shape} does not match colour {self.rgb.shape[:2]}"
             )
         if not np.any(self.depth):
-            raise BadInput("Depth image has no valid reading")
+            raise NoDepthReading("Depth image has no valid reading")
         self.T_map_cam = check_transform(self.T_map_cam, "T_map_cam")
 
 

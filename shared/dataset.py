@@ -139,13 +139,13 @@ def read_recording(
 
     source = None
     if is_bag(root):  # a ROS bag: read as the TUM folder it converts to (cached)
-        robot_id = robot_id or root.resolve().stem
+        robot_id = robot_id or default_robot_id(root)
         source, root = root, cached_tum(root, topics or BagTopics())
     if not root.is_dir():
         if root.exists():  # a file: not "not found"
             raise BadRobotData(f"{root} is a file, not a robot folder nor a ROS bag")
         raise BadRobotData(f"Robot folder not found: {root}")
-    robot_id = robot_id or root.resolve().name
+    robot_id = robot_id or default_robot_id(root)
     cam = root / "camera.json"
     origin = "given" if intrinsics is not None else (cam if cam.is_file() else None)
     if intrinsics is None:
@@ -179,6 +179,14 @@ def read_recording(
     n = native
     log.info("%s: %dx%d images read at %dx%d", robot_id, n.width, n.height, work.width, work.height)
     return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
+
+
+def default_robot_id(root: Path) -> str:
+    """The robot id of a folder or bag given without a name: the folder's name, the bag's
+    stem."""
+    from fleetmap.bags import is_bag
+
+    return Path(root).resolve().stem if is_bag(root) else Path(root).resolve().name
 
 
 def _poses(gt: Path, required: bool) -> tuple[np.ndarray, list]:

@@ -12,6 +12,10 @@ class BadInput(FleetmapError, ValueError):
     """Input of the wrong shape, type, size or value."""
 
 
+class NoDepthReading(BadInput):
+    """A depth image without a single reading (a sensor warming up, a covered lens)."""
+
+
 class BadFrame(BadInput):
     """An encoded frame structure that cannot be decoded or fails validation."""
 

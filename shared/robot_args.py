@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fleetmap.dataset import Recording, read_recording
+from fleetmap.dataset import Recording, default_robot_id, read_recording
 from fleetmap.errors import BadInput, BadRobotData
 from fleetmap.frame import check_robot_id
 
@@ -58,11 +58,9 @@ def distinct_ids(recs: list[Recording]) -> list[Recording]:
 
 def arg_robot_id(arg: str) -> str:
     """The robot id a `[NAME=]DIR` argument gives, before its folder is read (as
-    `read_recording` names it: NAME, else the folder's name or the bag's stem)."""
-    from fleetmap.bags import is_bag
-
+    `read_recording` names it: NAME, else `dataset.default_robot_id`)."""
     name, path = parse_robot_arg(arg)
-    return name or (path.resolve().stem if is_bag(path) else path.resolve().name)
+    return name or default_robot_id(path)
 
 
 def check_ids(ids: list[str]) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from fleetmap.correspondences import RGBDView
 from fleetmap.dataset import FrameRecord, Recording
-from fleetmap.errors import BadInput, BadRobotData
+from fleetmap.errors import BadRobotData, NoDepthReading
 from fleetmap.fleet.types import DEFAULT_VIEWS, Fit
 
 log = logging.getLogger(__name__)
@@ -171,9 +171,7 @@ def _with_depth(rec: Recording, chosen: list[int]) -> list[RGBDView]:
     for i in chosen:
         try:
             views.append(load_view(rec, i))
-        except BadInput as exc:
-            if not rec.frames[i].depth_path or "no valid reading" not in str(exc):
-                raise
+        except NoDepthReading:
             log.warning("%s: %s has no depth reading: not aligned", rec.robot_id,
                         rec.frames[i].depth_path)  # fmt: skip
     return views
