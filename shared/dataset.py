@@ -12,13 +12,17 @@ import numpy as np
 
 from fleetmap.camera import TUM_FR1, Intrinsics, no_reading_as_0
 from fleetmap.errors import BadInput, BadRobotData
-from fleetmap.tum_lists import associate, read_list, read_poses
+from fleetmap.tum_lists import MAX_POSE_INTERVAL_S, associate, poses_at, read_list, read_poses
 from fleetmap.view import check_intrinsics
 
 log = logging.getLogger(__name__)
 
 #: Colour, depth and pose are associated by nearest timestamp within this many seconds.
 MAX_ASSOCIATION_GAP_S = 0.02
+_NEAR = (
+    f"within {MAX_ASSOCIATION_GAP_S} s; a pose also between two at most {MAX_POSE_INTERVAL_S} "
+    "s apart"
+)
 
 #: The working resolution: a recording whose images hold more pixels is read downscaled to
 #: this many (aspect kept; colour area-averaged, depth nearest so no edge gets mixed depths;
@@ -161,9 +165,7 @@ def read_recording(
 
     frames = _associated(root, rgb, depth, pose_t, poses)
     if not frames:
-        raise BadRobotData(
-            f"{root}: no colour frame has depth and pose within {MAX_ASSOCIATION_GAP_S} s"
-        )
+        raise BadRobotData(f"{root}: no colour frame has depth and a pose ({_NEAR})")
     dropped = len(rgb) - len(frames)  # TUM's association: no frame left out unsaid
     twice = len(rgb) - len({r[0] for r in rgb})  # one depth and pose for the first only
     why = f"{dropped} without depth or a pose within {MAX_ASSOCIATION_GAP_S} s" + (
@@ -255,15 +257,15 @@ def _of_images(intrinsics: Intrinsics, first: Path, origin: Path | str | None) -
 
 
 def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> list[FrameRecord]:
-    """Colour frames with their depth frame (where the folder has depth) and pose (where it
-    has poses) within MAX_ASSOCIATION_GAP_S."""
+    """Colour frames with their depth frame (where the folder has depth) within
+    MAX_ASSOCIATION_GAP_S, and pose (where it has poses: `tum_lists.poses_at`)."""
     rgb_t = np.array([r[0] for r in rgb])
     d_of = (
         {}
         if depth is None
         else dict(associate(rgb_t, np.array([r[0] for r in depth]), MAX_ASSOCIATION_GAP_S))
     )
-    p_of = dict(associate(rgb_t, pose_t, MAX_ASSOCIATION_GAP_S)) if len(poses) else {}
+    p_of = poses_at(rgb_t, pose_t, poses, MAX_ASSOCIATION_GAP_S) if len(poses) else {}
     frames = []
     for i, (stamp, vals) in enumerate(rgb):
         if depth is not None and i not in d_of or len(poses) and i not in p_of:
@@ -275,7 +277,7 @@ def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> lis
                 stamp=stamp,
                 rgb_path=_resolve(root, vals[0]),
                 depth_path=None if depth is None else _resolve(root, depth[d_of[i]][1][0]),
-                T_map_cam=poses[p_of[i]] if len(poses) else None,
+                T_map_cam=p_of[i] if len(poses) else None,
             )
         )
     return frames

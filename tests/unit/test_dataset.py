@@ -364,3 +364,40 @@ def test_poses_whose_quaternions_are_not_unit_are_said(tum_robot, caplog):
         read_recording(tum_robot)
     assert "2 of 2 quaternions" in caplog.text
     assert "are the columns 'timestamp tx ty tz qx qy qz qw'?" in caplog.text
+
+
+def test_poses_between_the_images_are_interpolated_across_a_10_hz_track(tum_robot):
+    """Poses at 10 Hz, 33 ms off every image of a 30 Hz camera (an outside tester's SLAM
+    output): no image had a pose within 0.02 s, and the robot was refused ("no colour frame
+    has depth and pose"). Each image now takes the pose interpolated between the two around
+    it (linear in position, spherical in rotation); around a gap over 0.15 s, none."""
+    from scipy.spatial.transform import Rotation
+
+    from fleetmap.geometry import pose_to_tum
+    from fleetmap.tum_lists import poses_at
+
+    truth = read_recording(tum_robot)
+    t = np.array([f.stamp for f in truth.frames])  # 60 ms apart
+
+    def pose(s: float) -> np.ndarray:  # a camera turning at 1 rad/s, moving at 0.5 m/s
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec([0.0, s - t[0], 0.0]).as_matrix()
+        T[:3, 3] = [0.5 * (s - t[0]), 0.0, 1.0]
+        return T
+
+    around = [t[0] - 0.033, t[0] + 0.033, t[1] + 0.04]  # none within 0.02 s of an image
+    gt = tum_robot / "groundtruth.txt"
+    gt.write_text("".join(f"{s:.6f} " + " ".join(map(str, pose_to_tum(pose(s)))) + "\n"
+                          for s in around))  # fmt: skip
+    rec = read_recording(tum_robot)
+    assert [f.stamp for f in rec.frames] == list(t)
+    for f in rec.frames:
+        np.testing.assert_allclose(f.T_map_cam, pose(f.stamp), atol=1e-6)
+    found = poses_at(
+        np.array([t[0], t[1], t[1] + 0.2]), np.array(around), [pose(s) for s in around], 0.02
+    )
+    assert sorted(found) == [0, 1]  # t[1] + 0.2 lies past the last pose: none
+    gt.write_text("".join(f"{s:.6f} " + " ".join(map(str, pose_to_tum(pose(s)))) + "\n"
+                          for s in (t[0] - 0.07, t[1] + 0.07)))  # fmt: skip
+    with pytest.raises(BadRobotData, match="between two at most 0.15 s apart"):
+        read_recording(tum_robot)  # 0.2 s apart: a break in tracking
