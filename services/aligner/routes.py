@@ -9,6 +9,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fleetmap.align import merged_cloud, method
 from fleetmap.align.types import AlignParams
@@ -161,7 +162,15 @@ async def align(
     async with budget.slot():  # before the body: requests that wait hold no memory
         # chunked or not, cut off at the limit
         await read_body(request, st.max_body_bytes, FORM_TYPES)
-        form = await request.form(max_files=4 * st.max_views, max_fields=8)
+        try:
+            form = await request.form(max_files=4 * st.max_views, max_fields=8)
+        except StarletteHTTPException as exc:  # its limit tripped before the views are counted
+            if "files" not in str(exc.detail):
+                raise
+            raise BadInput(
+                f"At most {st.max_views} views per robot ({4 * st.max_views} image files): "
+                "send fewer (fleetmap's --max-views)"
+            ) from None
         meta = _parse_meta(form.get(ALIGN_META))
         if len(meta.pairs) > st.max_pairs:
             raise BadInput(f"At most {st.max_pairs} pairs, got {len(meta.pairs)}")

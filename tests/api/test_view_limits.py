@@ -111,6 +111,20 @@ def test_align_refuses_scan_bombs_and_implausible_intrinsics(tum_two_robots):
         assert r.status_code == 422 and "intrinsics implausible" in r.json()["detail"], r.text
 
 
+def test_more_views_than_the_aligner_takes_are_named_with_its_limit(tum_two_robots):
+    """`fleetmap merge --max-views 40` ended "/align: Too many files. Maximum number of files
+    is 128." (an outside tester's review): the form's file limit tripped before the views
+    were counted. The answer names the views' limit and the flag; fewer views still align."""
+    pairs, _ = tum_two_robots
+    with TestClient(aligner_app(AlignerSettings(max_body_bytes=20_000_000, max_views=1))) as c:
+        a, b = pairs[0]
+        r = c.post("/align", **align_request([(a, b), (replace(a), replace(b))]))  # 2 views
+        assert r.status_code == 422, r.text
+        assert r.json()["detail"].startswith("At most 1 views per robot (4 image files)"), r.text
+        assert "--max-views" in r.json()["detail"]
+        assert c.post("/align", **align_request(pairs[:1])).status_code == 200
+
+
 @pytest.mark.parametrize("depth_scale", [1e-9, 0.001, 1e300])
 def test_align_refuses_a_depth_scale_no_camera_has(tum_two_robots, depth_scale):
     """An outside tester's /align with depth_scale 1e-9 answered 500 ("Maximum allowed size
