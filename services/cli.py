@@ -63,7 +63,8 @@ def _add_max_views(p: argparse.ArgumentParser) -> None:
         "--max-views",
         type=_positive_count,
         default=DEFAULT_MERGE.views.max_views,
-        help="views per robot sent to the aligner (default %(default)s)",
+        help="views per robot sent to the aligner (default %(default)s; an aligner takes "
+        "32 at most unless its FLEETMAP_ALIGNER_MAX_VIEWS says more)",
     )
 
 
@@ -132,6 +133,17 @@ _seed = _number("seed (a whole number from 0 to 2147483647)", -1, above=True, in
                 high=2**31 - 1)  # fmt: skip
 
 
+def _folder(text: str) -> str:
+    """An argparse type: a folder's name, not empty (Path("") is the working folder: a merge
+    wrote its outputs there)."""
+    if not text.strip():
+        raise ValueError(text)
+    return text
+
+
+_folder.__name__ = "folder name (not empty)"
+
+
 def _url_arg(p: argparse.ArgumentParser, flag: str, env: str, required: bool, what: str) -> None:
     default = os.environ.get(env) or None
     p.add_argument(
@@ -170,7 +182,9 @@ def _data_commands(sub) -> None:
     """Commands on robots' data alone: extract, vocab train, convert, simulate."""
     p = sub.add_parser("extract", help="frame structures of a robot folder's keyframes")
     p.add_argument("robot", metavar="[NAME=]ROBOT_DIR")
-    p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FRAMES_DIR")
+    p.add_argument(
+        "-o", "--out", "--output", dest="output", required=True, metavar="FRAMES_DIR", type=_folder
+    )
     p.add_argument("--vocab", help="vocabulary file (default: the shipped one)")
     _add_robot_args(p)
     p.set_defaults(func=commands.cmd_extract)
@@ -190,12 +204,14 @@ def _data_commands(sub) -> None:
 
     p = sub.add_parser("convert", help="write a ROS bag robot out as a TUM folder")
     p.add_argument("bag", metavar="BAG", help="a ROS 1 .bag or a ROS 2 bag folder")
-    p.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="DIR")
+    p.add_argument(
+        "-o", "--out", "--output", dest="output", required=True, metavar="DIR", type=_folder
+    )
     _add_bag_args(p)
     p.set_defaults(func=commands.cmd_convert)
 
     p = sub.add_parser("simulate", help="render a synthetic fleet recording (TUM layout)")
-    p.add_argument("out", metavar="OUT_DIR")
+    p.add_argument("out", metavar="OUT_DIR", type=_folder)
     p.add_argument("--robots", type=_positive_count, default=3, help="how many robots")
     p.add_argument("--frames", type=_positive_count, default=30, help="frames per robot")
     p.add_argument("--seed", type=_seed, default=0, help="random seed")
@@ -262,7 +278,9 @@ def _pair_commands(sub) -> None:
 def _merge_command(sub) -> None:
     p = sub.add_parser("merge", help="the main job: merge N robots' maps into one")
     p.add_argument("robots", nargs="+", metavar="[NAME=]ROBOT_DIR")
-    p.add_argument("-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR")
+    p.add_argument(
+        "-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR", type=_folder
+    )
     _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", False, "place database")
     _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", False, "aligner")
     p.add_argument("--vocab", help="vocabulary file (must be the place database's)")
@@ -320,7 +338,9 @@ def _live_commands(sub) -> None:
         "pose_graph.g2o and trajectories/ (keyframe poses) from GET /map.",
     )
     _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
-    p.add_argument("-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR")
+    p.add_argument(
+        "-o", "--out", "--output", dest="out", required=True, metavar="OUT_DIR", type=_folder
+    )
     _add_voxel(p)
     p.set_defaults(func=live.cmd_map)
 

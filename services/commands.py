@@ -91,8 +91,6 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
     rec = read_robot(args.robot, lambda d: _intrinsics(args, d), topics=_topics(args))
     extractor = FrameExtractor(load_vocabulary(args.vocab))
-    if not args.output.strip():  # Path("") is the current folder: not what was meant
-        raise BadInput("-o/--output: an empty folder name")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     n = len(keyframe_indices(rec, _policy(args)))
@@ -322,14 +320,13 @@ def cmd_align(args: argparse.Namespace) -> int:
 def cmd_merge(args: argparse.Namespace) -> int:
     """The main job: N robot folders in, one global map and report out."""
     require("fleetmap merge")
-    from fleetmap.pictures import n_cascade
     from fleetmap.robot_args import distinct_ids
     from fleetmap.services.merge import run_merge
-    from fleetmap.services.outputs import prepare_out
+    from fleetmap.services.outputs import merge_summary, prepare_out
 
     recs = distinct_ids(_read_robots(args, args.robots))
     out = Path(args.out)
-    prepare_out(out)
+    previous = prepare_out(out)
     report = run_merge(
         recs,
         out,
@@ -340,22 +337,8 @@ def cmd_merge(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         token=args.token,
     )
-    ids = [r.robot_id for r in recs]
-    merged = [r for r in ids if r not in report["unmerged"]]
-    print(
-        f"merged {len(merged)} of {len(ids)} robots into {report['reference']}'s frame "
-        f"({n_cascade(report)} verified overlaps, "
-        f"{len(report['overlaps']) - n_cascade(report)} more co-visible once aligned, "
-        f"{report['timing_s']['total']:.1f} s)"
-    )
-    if report["unmerged"]:
-        print(f"unmerged (no trustworthy overlap): {', '.join(report['unmerged'])}")
-    print(f"results: {out / 'report.json'}, {out / 'merged.ply'}, {out / 'overview.png'}")
-    print(
-        f"look at: {out / 'overview.png'} (the map from above); {out / 'fleet.mcap'} in "
-        "Foxglove (docs/OPERATIONS.md); the map in 3D while robots stream: `fleetmap serve` "
-        "and `fleetmap stream`, then http://127.0.0.1:8100/ (README, 'The live map')"
-    )
+    previous.remove_unwritten()
+    print(merge_summary(report, [r.robot_id for r in recs], out))
     return 0
 
 

@@ -150,7 +150,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     from fleetmap.services.outputs import prepare_out
 
     out = Path(args.out)
-    prepare_out(out)  # --voxel: at least 1 mm, the parser's type (`cli._voxel_m`)
+    previous = prepare_out(out)  # --voxel: at least 1 mm, the parser's type (`cli._voxel_m`)
     t0, voxel = time.perf_counter(), max(args.voxel, BASE_VOXEL_M)
     with PlaceDBClient(args.place_db, token=args.token, timeout=600) as client:
         m = client.live_map()
@@ -163,6 +163,7 @@ def cmd_map(args: argparse.Namespace) -> int:
         pose_graph = client.map_pose_graph()
     files = LiveFiles(cloud, picture, tracks, lines, overlaps, voxel, served, pose_graph)
     write_live_outputs(out, m, files, args.place_db, time.perf_counter() - t0)
+    previous.remove_unwritten()
     where = f"in {m['reference']}'s frame" if m["reference"] else "placed (none yet)"
     print(
         f"live map version {m['version']}: {len(m['transforms'])} of {len(m['robots'])} robots "

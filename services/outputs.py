@@ -5,6 +5,7 @@ trajectory in the reference frame (TUM), the robots' pose graph (g2o) and the pi
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from pathlib import Path
 
@@ -27,12 +28,11 @@ OUTPUT_FILES = (
 )  # fmt: skip
 
 
-def prepare_out(out: Path) -> None:
+def prepare_out(out: Path) -> PreviousRun:
     """--out checked before any work: a folder or nothing yet, where no file this writes is
     a folder and `trajectories` is not a file (a `report.json` folder failed the run at its
-    end, the other files written). A previous run's outputs this run may not write again
-    are removed: trajectories/*.txt of robots not in this run stayed beside this run's
-    (a reader of trajectories/ took them for this fleet's), merged.pcd of a run with --pcd."""
+    end, the other files written). Returns what a previous run wrote there that this run
+    may not write again, to remove once it has written its own (`PreviousRun`)."""
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out} exists and is not a folder")
     for name in OUTPUT_FILES:
@@ -41,12 +41,68 @@ def prepare_out(out: Path) -> None:
     tracks = out / "trajectories"
     if tracks.exists() and not tracks.is_dir():
         raise BadInput(f"--out {out}: trajectories is a file, where this writes a folder")
-    stale = [*(tracks.glob("*.txt") if tracks.is_dir() else ()), out / "merged.pcd"]
-    stale = [f for f in stale if f.is_file()]
-    for f in stale:
-        f.unlink()
-    if stale:
-        log.info("%s: %d outputs of a previous run removed", out, len(stale))
+    return PreviousRun.of(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class PreviousRun:
+    """The files a previous `merge` or `map` wrote in --out that a new run may not write
+    again (trajectories/R.txt of a robot it does not place, merged.pcd without --pcd), by
+    what its report.json names (robots, --pcd), each with its state (inode, mtime, size)
+    then. Removed after the new run has written its outputs (`remove_unwritten`) where
+    still as they were: a reader of trajectories/ took a robot of the last run for this
+    fleet's. Nothing else is touched: an outside tester's own trajectories/notes.txt and
+    merged.pcd went with a merge that then failed to reach its aligner."""
+
+    files: dict  # Path -> (st_ino, st_mtime_ns, st_size)
+
+    @classmethod
+    def of(cls, out: Path) -> PreviousRun:
+        try:
+            report = json.loads((out / "report.json").read_text())
+            robots = [str(r) for r in report["robots"]]
+            pcd = report.get("parameters", {}).get("pcd") is True
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return cls({})  # no run of ours there, or not one we can read: nothing ours
+        names = [Path("trajectories") / f"{r}.txt" for r in robots if Path(r).name == r]
+        paths = [out / n for n in names + [Path("merged.pcd")] * pcd]
+        return cls({f: _state(f) for f in paths if f.is_file()})
+
+    def remove_unwritten(self) -> None:
+        """Remove the previous run's files this run has not written again."""
+        stale = [f for f, st in self.files.items() if f.is_file() and _state(f) == st]
+        for f in stale:
+            f.unlink()
+        if stale:
+            log.info("%d outputs of a previous run removed: %s", len(stale), stale)
+
+
+def _state(f: Path) -> tuple[int, int, int]:
+    st = f.stat()
+    return st.st_ino, st.st_mtime_ns, st.st_size
+
+
+def merge_summary(report: dict, ids: list[str], out: Path) -> str:
+    """What `fleetmap merge` prints when done: how many robots it merged, why each other
+    one is not (the report's reason, not "no trustworthy overlap" beside 30 verified
+    overlaps), where the results are and how to look at them."""
+    n = pictures.n_cascade(report)
+    merged = [r for r in ids if r not in report["unmerged"]]
+    lines = [
+        f"merged {len(merged)} of {len(ids)} robots into {report['reference']}'s frame ({n} "
+        f"verified overlaps, {len(report['overlaps']) - n} more co-visible once aligned, "
+        f"{report['timing_s']['total']:.1f} s)"
+    ]
+    for r, why in report["unmerged_reasons"].items():
+        why = why if len(why) <= 300 else f"{why[:300]}... (report.json: unmerged_reasons)"
+        lines.append(f"unmerged {r}: {why}")
+    lines += [
+        f"results: {out / 'report.json'}, {out / 'merged.ply'}, {out / 'overview.png'}",
+        f"look at: {out / 'overview.png'} (the map from above); {out / 'fleet.mcap'} in "
+        "Foxglove (docs/OPERATIONS.md); the map in 3D while robots stream: `fleetmap serve` "
+        "and `fleetmap stream`, then http://127.0.0.1:8100/ (README, 'The live map')",
+    ]
+    return "\n".join(lines)
 
 
 def prepare_file(path: Path, flag: str = "-o") -> None:

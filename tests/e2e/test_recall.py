@@ -131,7 +131,7 @@ def merged_near_truth(fit: dict, err, method: str) -> None:
 
 
 def test_unverified_revisit_is_merged_and_another_building_is_not(
-    hololens, sun3d, tmp_path, monkeypatch
+    hololens, sun3d, tmp_path, monkeypatch, capsys
 ):
     """Two windows of the HoloLens walk sharing half their surfaces (hl_a frames 15-75, hl_b
     15-75) get no keyframe pair verified by the cascade (so they stayed unmerged before);
@@ -161,6 +161,8 @@ def test_unverified_revisit_is_merged_and_another_building_is_not(
     assert report["unmerged"] == ["C"], report["fits"]
     refused = [f for f in report["fits"] if "C" in (f["robot_a"], f["robot_b"])]
     assert refused and all(not f["merged"] and f["reason"] for f in refused)
+    # the summary says why (it said "no trustworthy overlap" beside 30 verified overlaps)
+    assert f"unmerged C: {report['unmerged_reasons']['C'][:60]}" in capsys.readouterr().out
 
 
 def test_room_walked_the_other_way_is_merged_on_a_second_look(hololens, tmp_path):

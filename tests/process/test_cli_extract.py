@@ -1,3 +1,5 @@
+import pytest
+
 from fleetmap.frame import decode
 from fleetmap.services.cli import main
 
@@ -61,5 +63,6 @@ def test_a_failed_extract_leaves_no_half_robot_and_an_empty_output_is_refused(
     assert main(["extract", str(tum_robot), "-o", str(out), "--kf-interval", "0.01"]) == 1
     assert "Cannot read colour image" in capsys.readouterr().err
     assert list(out.glob("*.fmf")) == []
-    assert main(["extract", str(tum_robot), "-o", ""]) == 1
-    assert "empty folder name" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a usage error (tests/unit/test_out_folder.py)
+        main(["extract", str(tum_robot), "-o", ""])
+    assert "invalid folder name (not empty) value" in capsys.readouterr().err
