@@ -47,7 +47,7 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
     overrides = {k: getattr(args, k) for k in keys if getattr(args, k, None) is not None}
     if not overrides:
         return None
-    from fleetmap.dataset import overridden
+    from fleetmap.robot_args import overridden
 
     return overridden(robot_dir, overrides, _topics(args))
 

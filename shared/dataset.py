@@ -113,6 +113,18 @@ def working_intrinsics(native: Intrinsics) -> Intrinsics | None:
     return native.resized(max(1, int(w * s)), max(1, int(h * s)))
 
 
+def _named(root: Path, vals: list[str]) -> Path:
+    """The file a list line's fields after its time name (`_resolve`): the first field, or
+    all of them where that is the file there is (a name with spaces, which the TUM layout's
+    columns split: "Cannot read colour image .../robot A/color: no such file")."""
+    if not vals:
+        raise BadRobotData(f"{root}: a list line with a time but no file name")
+    name = vals[0]
+    if len(vals) > 1 and not (root / name).exists() and (root / " ".join(vals)).exists():
+        name = " ".join(vals)
+    return _resolve(root, name)
+
+
 def _resolve(root: Path, name: str) -> Path:
     p = (root / name).resolve()
     if not p.is_relative_to(root.resolve()):
@@ -204,23 +216,6 @@ def _poses(gt: Path, required: bool) -> tuple[np.ndarray, list]:
     return pose_t, poses
 
 
-_FOUR = {"fx", "fy", "cx", "cy"}
-
-
-def overridden(root: Path, flags: dict, topics=None) -> Intrinsics:
-    """The intrinsics of the robot at `root` with `flags` (the CLI's fx, fy, cx, cy,
-    depth_scale) over camera.json's, a bag's, or the TUM fr1 defaults', at the files' own
-    size. Checked as camera.json is (`view.check_intrinsics`)."""
-    from fleetmap.bags import is_bag
-
-    bare = not is_bag(root) and not (Path(root) / "camera.json").exists()  # the defaults'
-    stand_in = bare and _FOUR <= set(flags)  # not the defaults' camera: said only if not
-    rec = read_recording(root, intrinsics=TUM_FR1 if stand_in else None, topics=topics)
-    K = Intrinsics.from_dict({**(rec.file_intrinsics or rec.intrinsics).to_dict(), **flags})
-    check_intrinsics(K, K.width, K.height, "--fx --fy --cx --cy")
-    return K
-
-
 def _of_images(intrinsics: Intrinsics, first: Path, origin: Path | str | None) -> Intrinsics:
     """The intrinsics at the size the images have (`first`, the first colour image).
     `origin`: the camera.json they came from, which must be for that size (a focal length
@@ -275,8 +270,8 @@ def _associated(root: Path, rgb: list, depth: list | None, pose_t, poses) -> lis
         frames.append(
             FrameRecord(
                 stamp=stamp,
-                rgb_path=_resolve(root, vals[0]),
-                depth_path=None if depth is None else _resolve(root, depth[d_of[i]][1][0]),
+                rgb_path=_named(root, vals),
+                depth_path=None if depth is None else _named(root, depth[d_of[i]][1]),
                 T_map_cam=p_of[i] if len(poses) else None,
             )
         )

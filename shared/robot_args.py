@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
+from fleetmap.camera import TUM_FR1, Intrinsics
 from fleetmap.dataset import Recording, default_robot_id, read_recording
 from fleetmap.errors import BadInput, BadRobotData
 from fleetmap.frame import check_robot_id
+from fleetmap.view import check_intrinsics
+
+log = logging.getLogger(__name__)
 
 
 def parse_robot_arg(arg: str) -> tuple[str | None, Path]:
@@ -67,3 +72,32 @@ def check_ids(ids: list[str]) -> None:
     """Robot ids of one command: each once (`ingest x=A x=B` stored B under A's name)."""
     if len(set(ids)) != len(ids):
         raise BadInput(f"Robot ids must differ, got {ids}: name them with NAME=DIR")
+
+
+_FOUR = {"fx", "fy", "cx", "cy"}
+
+
+def overridden(root: Path, flags: dict, topics=None) -> Intrinsics:
+    """The intrinsics of the robot at `root` with `flags` (the CLI's fx, fy, cx, cy,
+    depth_scale) over camera.json's, a bag's, or the TUM fr1 defaults', at the files' own
+    size. Checked as camera.json is (`view.check_intrinsics`). Where the flags change the
+    robot's own camera (camera.json, a bag's), it is said: the flags apply to every robot of
+    the command, and in a fleet of mixed cameras one robot's fix is the others' error (an
+    outside tester's review)."""
+    from fleetmap.bags import is_bag
+
+    bare = not is_bag(root) and not (Path(root) / "camera.json").exists()  # the defaults'
+    stand_in = bare and _FOUR <= set(flags)  # not the defaults' camera: said only if not
+    rec = read_recording(root, intrinsics=TUM_FR1 if stand_in else None, topics=topics)
+    own = (rec.file_intrinsics or rec.intrinsics).to_dict()
+    K = Intrinsics.from_dict({**own, **flags})
+    check_intrinsics(K, K.width, K.height, "--fx --fy --cx --cy")
+    changed = [k for k, v in flags.items() if not bare and own[k] != v]
+    if changed:
+        log.warning(
+            "%s: %s replace its own camera's %s (the camera flags apply to every robot of the "
+            "command: give a robot of another camera its own camera.json instead)", root,
+            " ".join(f"--{k.replace('_', '-')} {flags[k]:g}" for k in changed),
+            ", ".join(f"{k} {own[k]:g}" for k in changed),
+        )  # fmt: skip
+    return K

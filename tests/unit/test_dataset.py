@@ -289,7 +289,7 @@ def test_camera_mistakes_are_named_where_they_are_read(tum_robot, caplog):
 
     import cv2
 
-    from fleetmap.dataset import overridden
+    from fleetmap.robot_args import overridden
 
     with caplog.at_level("WARNING", logger="fleetmap.dataset"):  # 640x480: said too
         rec = read_recording(tum_robot)  # (a SUN3D folder's millimetres read as 1/5000 m)
@@ -316,6 +316,10 @@ def test_camera_mistakes_are_named_where_they_are_read(tum_robot, caplog):
         with pytest.raises(BadRobotData, match=message):
             read_recording(tum_robot)
     (tum_robot / "camera.json").write_text(json.dumps(cam))
+    with caplog.at_level("WARNING", logger="fleetmap.robot_args"):  # a robot's own camera
+        assert overridden(tum_robot, {"fx": 436.5, "depth_scale": 1000.0}).depth_scale == 1000
+    assert "--depth-scale 1000 replace its own camera's depth_scale 5000" in caplog.text
+    assert "apply to every robot of the command" in caplog.text and "fx" not in caplog.text
     rec = read_recording(tum_robot)
     small = rec.frames[1].depth_path
     cv2.imwrite(str(small), cv2.resize(cv2.imread(str(small), cv2.IMREAD_UNCHANGED), (320, 240)))
@@ -401,3 +405,24 @@ def test_poses_between_the_images_are_interpolated_across_a_10_hz_track(tum_robo
                           for s in (t[0] - 0.07, t[1] + 0.07)))  # fmt: skip
     with pytest.raises(BadRobotData, match="between two at most 0.15 s apart"):
         read_recording(tum_robot)  # 0.2 s apart: a break in tracking
+
+
+def test_list_entries_with_spaces_in_their_names_are_read(tum_robot):
+    """A colour image `rgb/frame 1.png` listed as "t rgb/frame 1.png" was read as `rgb/frame`
+    ("Cannot read colour image .../rgb/frame: no such file"; an outside tester's review): a
+    name is the line's fields after the time where the first alone names no file."""
+    before = read_recording(tum_robot)
+    rows = []
+    for f in before.frames:
+        spaced = f.rgb_path.with_name(f"frame {f.rgb_path.name}")
+        f.rgb_path.rename(spaced)
+        rows.append(f"{f.stamp:.4f} rgb/{spaced.name}")
+    (tum_robot / "rgb.txt").write_text("\n".join(rows) + "\n")
+    rec = read_recording(tum_robot)
+    assert [f.rgb_path.name for f in rec.frames] == [
+        f"frame {f.rgb_path.name}" for f in before.frames
+    ]
+    assert rec.reader.rgb(rec.frames[0].rgb_path).shape == (480, 640, 3)
+    (tum_robot / "depth.txt").write_text(f"{before.frames[0].stamp:.4f}\n")
+    with pytest.raises(BadRobotData, match="a list line with a time but no file name"):
+        read_recording(tum_robot)
