@@ -262,13 +262,27 @@ def _service_commands(sub) -> None:
 
 def _pair_commands(sub) -> None:
     """align: one robot pair through both services."""
-    p = sub.add_parser("align", help="fit robot B's map frame into robot A's")
-    p.add_argument("robot_a", metavar="[NAME=]ROBOT_DIR_A")
-    p.add_argument("robot_b", metavar="[NAME=]ROBOT_DIR_B")
+    p = sub.add_parser(
+        "align",
+        help="fit robot B's map frame into robot A's",
+        description="One robot pair through running services: both robots must be in the "
+        "place database already (`fleetmap ingest` each folder first). `fleetmap merge` does "
+        "all of it, with services of its own where none are given.",
+        epilog="methods:\n" + "\n".join(f"  {k}: {m.description}" for k, m in METHODS.items()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("robot_a", metavar="[NAME=]ROBOT_DIR_A", help="the robot whose frame is kept")
+    p.add_argument("robot_b", metavar="[NAME=]ROBOT_DIR_B", help="the robot placed in it")
     _url_arg(p, "--place-db", "FLEETMAP_PLACE_DB_URL", True, "place database")
     _url_arg(p, "--aligner", "FLEETMAP_ALIGNER_URL", True, "aligner")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--method", default="default", choices=list(METHODS))
+    p.add_argument(
+        "--method",
+        default="default",
+        choices=list(METHODS),
+        help="alignment method (default: the gated fit `merge` uses; the others, one estimator "
+        "without the quality gate for comparison, below)",
+    )
     _add_max_views(p)
     p.add_argument("--wait", type=_seconds, default=120.0, help="seconds to wait for overlaps")
     _add_robot_args(p)

@@ -35,9 +35,9 @@ def read_list(path: Path) -> list[tuple[float, list[str]]]:
         try:
             stamp = float(parts[0])
         except ValueError:  # skipped silently before: a damaged list lost frames unsaid
+            hint = "fields apart by spaces, not commas" if "," in parts[0] else "comments: '#'"
             raise BadRobotData(
-                f"{path}:{n}: expected a timestamp first, got {line.strip()[:60]!r} "
-                "(comments start with '#')"
+                f"{path}:{n}: expected a timestamp first, got {line.strip()[:60]!r} ({hint})"
             ) from None
         if not np.isfinite(stamp):
             raise BadRobotData(f"{path}:{n}: non-finite timestamp")

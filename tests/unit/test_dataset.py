@@ -75,6 +75,7 @@ def test_a_groundtruth_file_without_poses_is_refused(tum_robot, text):
         ("groundtruth.txt", "hello world foo", "groundtruth.txt:4: expected a timestamp first"),
         ("rgb.txt", "rgb/x.png 1305031102.3", "rgb.txt:4: expected a timestamp first"),
         ("groundtruth.txt", "1305031102.2758 nan 0 0 0 0 0 1", "groundtruth.txt: bad pose"),
+        ("groundtruth.txt", "1305031102.3,0,0,0,0,0,0,1", "apart by spaces, not commas"),
     ],
 )
 def test_a_damaged_list_line_is_named_not_skipped(tum_robot, file, line, named):
