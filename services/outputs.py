@@ -60,11 +60,12 @@ class PreviousRun:
     def of(cls, out: Path) -> PreviousRun:
         try:
             report = json.loads((out / "report.json").read_text())
-            robots = [str(r) for r in report["robots"]]
-            pcd = report.get("parameters", {}).get("pcd") is True
+            robots, pcd = report["robots"], report.get("parameters", {}).get("pcd") is True
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            return cls({})  # no run of ours there, or not one we can read: nothing ours
-        names = [Path("trajectories") / f"{r}.txt" for r in robots if Path(r).name == r]
+            robots = None
+        if not isinstance(robots, dict | list):  # no run of ours there, or none we can read
+            return cls({})
+        names = [Path("trajectories") / f"{r}.txt" for r in robots if _plain(r)]
         paths = [out / n for n in names + [Path("merged.pcd")] * pcd]
         return cls({f: _state(f) for f in paths if f.is_file()})
 
@@ -75,6 +76,11 @@ class PreviousRun:
             f.unlink()
         if stale:
             log.info("%d outputs of a previous run removed: %s", len(stale), stale)
+
+
+def _plain(name) -> bool:
+    """A robot id that names a file in trajectories/ and nothing beyond it."""
+    return isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name
 
 
 def _state(f: Path) -> tuple[int, int, int]:

@@ -57,6 +57,9 @@ def test_files_no_run_of_ours_wrote_are_never_removed(tmp_path, capsys):
     prepare_out(out).remove_unwritten()  # names alpha, without --pcd: not these
     (out / "report.json").write_text("{not json")  # not one we can read: nothing ours
     prepare_out(out).remove_unwritten()
+    for robots in ("my_groundtruth", ["../merged.pcd", "/etc/passwd", 3, None]):  # no ids
+        (out / "report.json").write_text(json.dumps({"robots": robots}))
+        assert not prepare_out(out).files
     assert all(f.read_text() == "mine" for f in mine)
 
 
