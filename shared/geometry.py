@@ -95,6 +95,25 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, u: float) -> np.ndarray:
+    """The pose a fraction `u` (0 to 1) of the way from T0 to T1: the position along the
+    line, the rotation along the shorter arc (spherical interpolation of unit quaternions,
+    numpy alone: the robot side has no scipy)."""
+    q0, q1 = matrix_to_quat(T0[:3, :3]), matrix_to_quat(T1[:3, :3])
+    d = float(q0 @ q1)
+    if d < 0:  # q and -q are one rotation: the shorter way round
+        q1, d = -q1, -d
+    if d > 0.9995:  # nearly one rotation: the line is the arc
+        q = q0 + u * (q1 - q0)
+    else:
+        a = np.arccos(d)
+        q = (np.sin((1 - u) * a) * q0 + np.sin(u * a) * q1) / np.sin(a)
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
+    T[:3, 3] = (1 - u) * T0[:3, 3] + u * T1[:3, 3]
+    return T
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4x4 transform."""
     Ti = np.eye(4)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetmap.errors import BadRobotData
-from fleetmap.geometry import pose_from_tum
+from fleetmap.geometry import interpolate_pose, pose_from_tum
 
 log = logging.getLogger(__name__)
 
@@ -97,8 +97,6 @@ def poses_at(t: np.ndarray, pose_t: np.ndarray, poses: list, max_gap: float) -> 
     """The pose (4x4) of each of the sorted stamps `t` that has one, by index into `t`: the
     nearest within `max_gap` (`associate`, one to one, as TUM's tools), else interpolated
     between the two around it where they are at most MAX_POSE_INTERVAL_S apart."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     out = {i: poses[j] for i, j in associate(t, pose_t, max_gap)}
     keys, first = np.unique(pose_t, return_index=True)  # a stamp listed twice: its first
     if len(keys) < 2:
@@ -110,12 +108,10 @@ def poses_at(t: np.ndarray, pose_t: np.ndarray, poses: list, max_gap: float) -> 
     todo = [i for i in np.flatnonzero(near) if i not in out]
     if not todo:
         return out
-    P = np.stack([poses[j] for j in first])
-    R = Slerp(keys, Rotation.from_matrix(P[:, :3, :3]))(t[todo]).as_matrix()
-    for n, i in enumerate(todo):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R[n], [np.interp(t[i], keys, P[:, r, 3]) for r in range(3)]
-        out[i] = T
+    for i in todo:
+        lo, hi = keys[k[i] - 1], keys[k[i]]
+        T0, T1 = poses[first[k[i] - 1]], poses[first[k[i]]]
+        out[i] = interpolate_pose(T0, T1, (t[i] - lo) / (hi - lo))
     log.info("%d frames' poses interpolated between poses up to %g s apart", len(todo),
              MAX_POSE_INTERVAL_S)  # fmt: skip
     return out

@@ -48,3 +48,26 @@ def test_tum_pose_round_trip_and_errors():
         matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
     with pytest.raises(BadInput, match="unit quaternion"):
         pose_from_tum([0, 0, 0], [0, 0, 0, 0])
+
+
+def test_interpolate_pose_is_scipys_slerp_and_a_line():
+    """`geometry.interpolate_pose` (numpy alone, for the robot side) against scipy's Slerp:
+    the rotation on the shorter arc, the position on the line, the ends exact."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from fleetmap.geometry import interpolate_pose
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        R = Rotation.random(2, random_state=rng)
+        T0, T1 = np.eye(4), np.eye(4)
+        T0[:3, :3], T1[:3, :3] = R.as_matrix()
+        T0[:3, 3], T1[:3, 3] = rng.normal(size=(2, 3))
+        for u in (0.0, 0.3, 1.0):
+            T = interpolate_pose(T0, T1, u)
+            np.testing.assert_allclose(T[:3, :3], Slerp([0, 1], R)([u]).as_matrix()[0], atol=1e-9)
+            np.testing.assert_allclose(T[:3, 3], (1 - u) * T0[:3, 3] + u * T1[:3, 3])
+    near = T0.copy()
+    near[:3, :3] = T0[:3, :3] @ Rotation.from_rotvec([0, 0, 1e-4]).as_matrix()
+    half = interpolate_pose(T0, near, 0.5)  # nearly one rotation: the line, normalised
+    np.testing.assert_allclose(half[:3, :3] @ half[:3, :3].T, np.eye(3), atol=1e-12)
