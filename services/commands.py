@@ -54,13 +54,15 @@ def _intrinsics(args: argparse.Namespace, robot_dir: Path) -> Intrinsics | None:
 
 def _read_robots(args: argparse.Namespace, robot_args: list[str]) -> list:
     """Recordings with depth and poses for [NAME=]DIR arguments."""
-    from fleetmap.robot_args import check_distinct, read_robot
+    from fleetmap.robot_args import check_distinct, check_topics, read_robot
 
     def camera(robot_dir):
         return _intrinsics(args, robot_dir)
 
     kw = {"require_depth": True, "require_poses": True, "topics": _topics(args)}
-    return check_distinct([read_robot(arg, camera, **kw) for arg in robot_args])
+    return check_topics(
+        check_distinct([read_robot(arg, camera, **kw) for arg in robot_args]), kw["topics"]
+    )
 
 
 def _policy(args: argparse.Namespace):
@@ -86,10 +88,11 @@ def cmd_extract(args: argparse.Namespace) -> int:
     """Write one encoded frame structure per keyframe of a robot folder."""
     from fleetmap.extract import FrameExtractor, extract_recording, keyframe_indices
     from fleetmap.frame import encode
-    from fleetmap.robot_args import read_robot
+    from fleetmap.robot_args import check_topics, read_robot
     from fleetmap.vocabulary import load_vocabulary
 
     rec = read_robot(args.robot, lambda d: _intrinsics(args, d), topics=_topics(args))
+    check_topics([rec], _topics(args))
     extractor = FrameExtractor(load_vocabulary(args.vocab))
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -55,6 +55,18 @@ def check_distinct(recs: list[Recording]) -> list[Recording]:
     return recs
 
 
+def check_topics(recs: list[Recording], topics) -> list[Recording]:
+    """`recs`, where bag topics (`bags.BagTopics`) were given only if one of them is a ROS
+    bag: `--rgb-topic` on folders alone was taken and ignored, unsaid (an outside tester's
+    review). In a fleet of bags and folders the topics choose the bags' messages."""
+    given = [f"--{k}-topic" for k in ("rgb", "depth", "info", "pose") if getattr(topics, k)]
+    if given and not any(r.source for r in recs):
+        raise BadInput(
+            f"{' '.join(given)}: no robot given is a ROS bag (they choose a bag's topics)"
+        )
+    return recs
+
+
 def distinct_ids(recs: list[Recording]) -> list[Recording]:
     """`recs`, whose robot ids differ (a fleet job's: `merge`, `stream`)."""
     check_ids([r.robot_id for r in recs])

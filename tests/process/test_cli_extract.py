@@ -26,7 +26,7 @@ def test_extract_draws_its_progress_bar_unless_quiet(tum_robot, tmp_path, capsys
 
 
 def test_extract_reports_missing_folder(tmp_path, capsys):
-    assert main(["extract", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o")]) == 1
+    assert main(["extract", str(tmp_path / "nowhere"), "-o", str(tmp_path / "outs" / "o")]) == 1
     assert "Robot folder not found" in capsys.readouterr().err
 
 
@@ -66,3 +66,32 @@ def test_a_failed_extract_leaves_no_half_robot_and_an_empty_output_is_refused(
     with pytest.raises(SystemExit):  # a usage error (tests/unit/test_out_folder.py)
         main(["extract", str(tum_robot), "-o", ""])
     assert "invalid folder name (not empty) value" in capsys.readouterr().err
+
+
+def test_bag_topics_given_for_folders_alone_are_refused(tum_robot, tmp_path, capsys):
+    """`--rgb-topic` on robots that are all folders was taken and ignored, unsaid (an
+    outside tester's review); with a bag among them it chooses that bag's topics."""
+    for args in (
+        [
+            "extract",
+            str(tum_robot),
+            "-o",
+            str(tmp_path / "outs" / "f"),
+            "--rgb-topic",
+            "/camera/color",
+        ],
+        [
+            "merge",
+            f"a={tum_robot}",
+            "-o",
+            str(tmp_path / "outs" / "o"),
+            "--pose-topic",
+            "/o",
+            "--info-topic",
+            "/i",
+        ],
+    ):
+        assert main(args) == 1
+        err = capsys.readouterr().err
+        assert "no robot given is a ROS bag" in err and args[-2] in err, err
+        assert not (tmp_path / "outs").exists()
