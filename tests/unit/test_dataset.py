@@ -427,3 +427,24 @@ def test_list_entries_with_spaces_in_their_names_are_read(tum_robot):
     (tum_robot / "depth.txt").write_text(f"{before.frames[0].stamp:.4f}\n")
     with pytest.raises(BadRobotData, match="a list line with a time but no file name"):
         read_recording(tum_robot)
+
+
+def test_a_pose_track_at_its_bound_and_stamps_listed_twice(tum_robot, caplog):
+    """Poses exactly 0.15 s apart read as 0.1500001 s between some rows (a double's
+    resolution at Unix times): an outside tester's 6.67 Hz track kept 23 of 40 frames. A
+    stamp listed twice with different poses took the first unsaid (its bogus first copy
+    moved the robot 1.7 m)."""
+    from fleetmap.tum_lists import poses_at
+
+    t0 = 1305031102.2159
+    pose_t = t0 - 0.05 + 0.15 * np.arange(40)  # 6.67 Hz, none within 0.02 s of the images
+    images = pose_t[:-1] + 0.075
+    found = poses_at(images, pose_t, [np.eye(4)] * len(pose_t), 0.02)
+    assert len(found) == len(images)
+    gt = tum_robot / "groundtruth.txt"
+    rows = [ln for ln in gt.read_text().splitlines() if not ln.startswith("#")]
+    stamp = rows[0].split()[0]
+    gt.write_text("\n".join([f"{stamp} 1 2 3 0 0 0 1", *rows]) + "\n")  # a bogus first copy
+    with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
+        read_recording(tum_robot)
+    assert "1 times listed twice with different poses: the first of each taken" in caplog.text
