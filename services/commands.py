@@ -329,7 +329,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
 
     recs = distinct_ids(_read_robots(args, args.robots))
     out = Path(args.out)
-    previous = prepare_out(out)
+    previous = prepare_out(out, [r.robot_id for r in recs])
     report = run_merge(
         recs,
         out,

@@ -28,20 +28,32 @@ OUTPUT_FILES = (
 )  # fmt: skip
 
 
-def prepare_out(out: Path) -> PreviousRun:
+def prepare_out(out: Path, robots=()) -> PreviousRun:
     """--out checked before any work: a folder or nothing yet, where no file this writes is
-    a folder and `trajectories` is not a file (a `report.json` folder failed the run at its
-    end, the other files written). Returns what a previous run wrote there that this run
-    may not write again, to remove once it has written its own (`PreviousRun`)."""
+    a folder (`robots`: the trajectories' names) and `trajectories` is not a file (a
+    `report.json` folder failed the run at its end, the other files written), made and
+    written to once (a read-only --out failed after the whole merge). Returns what a
+    previous run wrote there that this run may not write again, to remove once it has
+    written its own (`PreviousRun`)."""
     if out.exists() and not out.is_dir():
         raise BadInput(f"--out {out} exists and is not a folder")
-    for name in OUTPUT_FILES:
+    tracks = out / "trajectories"
+    names = [*OUTPUT_FILES, *(f"trajectories/{r}.txt" for r in robots)]
+    for name in names:
         if (out / name).is_dir():
             raise BadInput(f"--out {out}: {name} is a folder, where this writes a file")
-    tracks = out / "trajectories"
     if tracks.exists() and not tracks.is_dir():
         raise BadInput(f"--out {out}: trajectories is a file, where this writes a folder")
-    return PreviousRun.of(out)
+    previous = PreviousRun.of(out)
+    for folder in (out, tracks):  # made, and written to once
+        probe = folder / ".fleetmap-probe"
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise BadInput(f"--out {folder}: cannot write there ({exc.strerror})") from None
+    return previous
 
 
 @dataclasses.dataclass(frozen=True)

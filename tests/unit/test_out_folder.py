@@ -35,8 +35,8 @@ def test_a_previous_runs_trajectories_and_pcd_do_not_stay_beside_this_runs(tmp_p
     previous.remove_unwritten()
     assert sorted(p.name for p in (out / "trajectories").iterdir()) == ["X.txt", "notes.txt"]
     assert not (out / "merged.pcd").exists()
-    assert not prepare_out(tmp_path / "new").files  # nothing there yet: nothing to check
-    assert not (tmp_path / "new").exists()
+    assert not prepare_out(tmp_path / "new").files  # nothing there yet: nothing to remove
+    assert not any((tmp_path / "new" / "trajectories").iterdir())  # made, probed, empty
 
 
 def test_files_no_run_of_ours_wrote_are_never_removed(tmp_path, capsys):
@@ -78,6 +78,20 @@ def test_an_empty_out_folder_name_is_a_usage_error(tmp_path, capsys):
             main(args)
         assert exc.value.code == 2
         assert "invalid folder name (not empty) value" in capsys.readouterr().err
+
+
+def test_an_out_folder_that_cannot_be_written_is_refused_before_any_work(tmp_path):
+    """A read-only --out, or trajectories/C.txt a folder, failed after the whole merge (an
+    outside tester's review: 12-14 s of work, then "Read-only file system"). Both are
+    refused by `prepare_out`, before anything is read: --out is made and written to once."""
+    out = tmp_path / "out"
+    (out / "trajectories" / "C.txt").mkdir(parents=True)
+    with pytest.raises(BadInput, match="trajectories/C.txt is a folder"):
+        prepare_out(out, ["A", "C"])
+    # root writes into a read-only folder: a place where no folder can be made stands in
+    (tmp_path / "file").write_text("")
+    with pytest.raises(BadInput, match="cannot write there"):
+        prepare_out(tmp_path / "file" / "out")
 
 
 @pytest.mark.parametrize(
