@@ -105,6 +105,8 @@ def _pick(conns, types: tuple[str, ...], given: str | None, what: str, flag: str
             )
         return found[0]
     found = [c for c in conns if c.msgtype in types]
+    if not found:  # "0 CameraInfo topics []: choose one": there was none to choose
+        raise BadRobotData(f"the bag has no {what} topic ({' or '.join(types)})")
     if len(found) != 1:
         names = sorted(c.topic for c in found)
         raise BadRobotData(f"{len(found)} {what} topics {names}: choose one with {flag}")
@@ -288,8 +290,8 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
         wanted = [rgb_c, depth_c, info_c, pose_c]
         seen: dict[str, set] = {"rgb": set(), "depth": set(), "gt": set()}
         for n, conn, msg in _messages(reader, wanted, bag):
-            if conn.topic == info_c.topic:
-                camera = camera or _camera(msg)
+            if conn.topic == info_c.topic:  # the first that gives a focal length
+                camera = camera or (c if (c := _camera(msg))["fx"] > 0 < c["fy"] else None)
                 continue
             stamp = _stamp(msg)
             kind = {pose_c.topic: "gt", depth_c.topic: "depth"}.get(conn.topic, "rgb")
@@ -307,7 +309,8 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
         reader.close()
     if camera is None or not lists["rgb"] or not lists["depth"] or not lists["gt"]:
         counts = {k: len(v) for k, v in lists.items()}
-        raise BadRobotData(f"{bag}: incomplete recording {counts}, camera info: {bool(camera)}")
+        why = "" if camera else f", no CameraInfo on {info_c.topic} with a focal length (K 0?)"
+        raise BadRobotData(f"{bag}: incomplete recording {counts}{why}")
     (out / "camera.json").write_text(json.dumps(camera, indent=1))
     for name, key in (("rgb.txt", "rgb"), ("depth.txt", "depth"), ("groundtruth.txt", "gt")):
         (out / name).write_text("\n".join(lists[key]) + "\n")

@@ -31,11 +31,15 @@ def write_bag(
     frames=None,
     zero_stamps=False,
     packed: str | None = None,
+    k_zero: int = 0,
+    info: bool = True,
 ) -> None:
     """A robot folder as a bag: colour (rgb8), depth (16UC1 mm or 32FC1 m), CameraInfo and
     PoseStamped, each message stamped with its frame's time (`zero_stamps`: every header's
     stamp 0, as a driver without a clock writes them; the bag's record times still differ).
-    `packed` ("png", "jpeg"): colour as image_transport's CompressedImage in that format."""
+    `packed` ("png", "jpeg"): colour as image_transport's CompressedImage in that format.
+    `k_zero`: the first k_zero CameraInfo messages' K all zeros (an uncalibrated driver);
+    `info`: False, no CameraInfo topic."""
     from rosbags.typesys import Stores, get_typestore
 
     rec = read_recording(robot_dir)
@@ -71,9 +75,9 @@ def write_bag(
         colour_type = (Packed if packed else Image).__msgtype__
         c_rgb = writer.add_connection("/cam/color", colour_type, typestore=ts)
         c_depth = writer.add_connection("/cam/depth", Image.__msgtype__, typestore=ts)
-        c_info = writer.add_connection("/cam/info", Info.__msgtype__, typestore=ts)
+        c_info = info and writer.add_connection("/cam/info", Info.__msgtype__, typestore=ts)
         c_pose = writer.add_connection("/cam/pose", PoseStamped.__msgtype__, typestore=ts)
-        for f in rec.frames[:frames]:
+        for n, f in enumerate(rec.frames[:frames]):
             ns = round(f.stamp * 1e9)
             rgb = load_rgb(f.rgb_path)[:, :, ::-1]
             depth = load_depth(f.depth_path)
@@ -85,7 +89,7 @@ def write_bag(
                 width=K.width,
                 distortion_model="plumb_bob",
                 d=np.zeros(5),
-                k=np.array([K.fx, 0, K.cx, 0, K.fy, K.cy, 0, 0, 1.0]),
+                k=np.array([K.fx, 0, K.cx, 0, K.fy, K.cy, 0, 0, 1.0]) * (n >= k_zero),
                 r=np.eye(3).ravel(),
                 p=np.zeros(12),
                 binning_x=0,
@@ -94,7 +98,7 @@ def write_bag(
             )
             if ros1:
                 kw = {k.upper() if k in "krpd" else k: v for k, v in kw.items()}
-            info = Info(header=header(f.stamp), **kw)
+            msg_info = Info(header=header(f.stamp), **kw)
             p = pose_to_tum(f.T_map_cam)
             pose = PoseStamped(header(f.stamp), Pose(Point(*p[:3]), Quat(*p[3:])))
             if packed:
@@ -104,7 +108,8 @@ def write_bag(
             else:
                 writer.write(c_rgb, ns, ser(image(f.stamp, rgb, "rgb8"), Image.__msgtype__))
             writer.write(c_depth, ns, ser(dmsg, Image.__msgtype__))
-            writer.write(c_info, ns, ser(info, Info.__msgtype__))
+            if c_info:
+                writer.write(c_info, ns, ser(msg_info, Info.__msgtype__))
             writer.write(c_pose, ns, ser(pose, PoseStamped.__msgtype__))
 
 
@@ -207,6 +212,17 @@ def test_a_convert_that_fails_names_why_and_leaves_nothing(sun3d, tmp_path, caps
     assert main(["convert", str(zero), "-o", str(out)]) == 1
     assert "two messages on /cam/" in capsys.readouterr().err and not out.exists()
     assert main(["convert", str(bag), "-o", str(out)]) == 0  # the retry is not refused
+    for kw, said in (  # no intrinsics to read: named (it said "camera info: False")
+        ({"k_zero": 3}, "no CameraInfo on /cam/info with a focal length (K 0?)"),
+        ({"info": False}, "the bag has no CameraInfo topic (sensor_msgs/msg/CameraInfo)"),
+    ):
+        blind = tmp_path / f"k{len(said)}_bag"
+        write_bag(sun3d / "robot_b", blind, frames=3, **kw)
+        assert main(["convert", str(blind), "-o", str(tmp_path / "blind")]) == 1
+        assert said in capsys.readouterr().err and not (tmp_path / "blind").exists()
+    late = tmp_path / "late_bag"  # the first CameraInfo uncalibrated, the next ones right
+    write_bag(sun3d / "robot_b", late, frames=3, k_zero=1)
+    assert main(["convert", str(late), "-o", str(tmp_path / "late")]) == 0
     empty = tmp_path / "e_bag"
     write_bag(sun3d / "robot_b", empty, frames=0)  # its topics, no message on them
     assert main(["convert", str(empty), "-o", str(tmp_path / "e")]) == 1
