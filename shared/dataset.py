@@ -186,7 +186,7 @@ def read_recording(
         "%s: %d associated frames of %d colour images%s", robot_id, len(frames), len(rgb),
         f" ({why})" * bool(dropped),
     )  # fmt: skip
-    native = _of_images(intrinsics, frames[0].rgb_path, origin)
+    native = _of_images(intrinsics, frames[0].rgb_path, origin, root)
     work = working_intrinsics(native)
     if work is None:
         return Recording(robot_id, root, native, frames, source=source)
@@ -216,21 +216,21 @@ def _poses(gt: Path, required: bool) -> tuple[np.ndarray, list]:
     return pose_t, poses
 
 
-def _of_images(intrinsics: Intrinsics, first: Path, origin: Path | str | None) -> Intrinsics:
+def _of_images(intrinsics: Intrinsics, first: Path, origin, root: Path) -> Intrinsics:
     """The intrinsics at the size the images have (`first`, the first colour image).
     `origin`: the camera.json they came from, which must be for that size (a focal length
     and centre are one image size's) and plausible for it (`view.check_intrinsics`: a focal
     length in millimetres, a centre off the image); None: the TUM fr1 defaults, as the
     contract has them where there is no camera.json, with a warning where the images are
     not their 640x480; "given": the caller's, taken as they are (the CLI's flags check
-    their own)."""
+    their own). `root`: the robot's folder, as the warnings name it."""
     h, w = load_rgb(first).shape[:2]
     if origin is None and (w, h) == (intrinsics.width, intrinsics.height):
         k = intrinsics  # said: a SUN3D folder without it read its millimetres as 1/5000 m
         log.warning(
             "%s: no camera.json: the TUM fr1 defaults taken (fx %.1f fy %.1f cx %.1f cy %.1f, "
             "%g depth units per metre); for another camera give camera.json or --fx --fy "
-            "--cx --cy --depth-scale", first.parent.parent, k.fx, k.fy, k.cx, k.cy, k.depth_scale,
+            "--cx --cy --depth-scale", root, k.fx, k.fy, k.cx, k.cy, k.depth_scale,
         )  # fmt: skip
     elif origin is None:
         log.warning(

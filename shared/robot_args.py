@@ -104,12 +104,19 @@ def overridden(root: Path, flags: dict, topics=None) -> Intrinsics:
     own = (rec.file_intrinsics or rec.intrinsics).to_dict()
     K = Intrinsics.from_dict({**own, **flags})
     check_intrinsics(K, K.width, K.height, "--fx --fy --cx --cy")
+    if bare and not stand_in:  # the defaults' warning listed what these flags replace
+        log.warning("%s: %s taken over those defaults", root, _as_flags(flags, list(flags)))
     changed = [k for k, v in flags.items() if not bare and own[k] != v]
     if changed:
         log.warning(
             "%s: %s replace its own camera's %s (the camera flags apply to every robot of the "
             "command: give a robot of another camera its own camera.json instead)", root,
-            " ".join(f"--{k.replace('_', '-')} {flags[k]:g}" for k in changed),
+            _as_flags(flags, changed),
             ", ".join(f"{k} {own[k]:g}" for k in changed),
         )  # fmt: skip
     return K
+
+
+def _as_flags(flags: dict, keys: list) -> str:
+    """The camera flags `keys` of `flags` as they were given: "--fx 436.5 --depth-scale 1000"."""
+    return " ".join(f"--{k.replace('_', '-')} {flags[k]:g}" for k in keys)

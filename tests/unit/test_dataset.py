@@ -308,6 +308,10 @@ def test_camera_mistakes_are_named_where_they_are_read(tum_robot, caplog):
     with caplog.at_level("WARNING", logger="fleetmap.dataset"):
         K = overridden(tum_robot, flags)
     assert (K.width, K.cx, K.depth_scale) == (540, 268.7, 5000.0) and not caplog.text
+    with caplog.at_level("WARNING"):  # one flag over the defaults: said with the defaults
+        assert overridden(tum_robot, {"depth_scale": 1000.0}).depth_scale == 1000.0
+    assert f"{tum_robot}: --depth-scale 1000 taken over those defaults" in caplog.text
+    caplog.clear()
     cam = flags | {"depth_scale": 5000.0, "width": 540, "height": 360}
     for bad, message in (
         ({"depth_scale": 0.001}, r"depth units per metre.*as metres per unit, 1000"),
