@@ -76,6 +76,23 @@ def cached_tum(bag: Path, topics: BagTopics = BagTopics(), cache: Path | None = 
     return out
 
 
+def read_bag(bag: Path, robot_id, intrinsics, require_depth, require_poses, topics):
+    """`dataset.read_recording` of the TUM folder a ROS bag converts to (`cached_tum`), its
+    errors naming the bag (they named the cache's folder, which the user never made: an
+    outside tester's 5 Hz odometry), the bag as the recording's `source`."""
+    import dataclasses
+
+    from fleetmap.dataset import default_robot_id, read_recording
+
+    tum = cached_tum(bag, topics or BagTopics())
+    try:
+        rec = read_recording(tum, robot_id or default_robot_id(bag), intrinsics, require_depth,
+                             require_poses)  # fmt: skip
+    except BadRobotData as exc:
+        raise BadRobotData(f"{bag} (as converted: {exc})") from None
+    return dataclasses.replace(rec, source=bag)
+
+
 def _bag_state(bag: Path) -> list:
     """What says a bag changed: a file's size and modification time; a ROS 2 bag folder's,
     each of its files' (rewriting a folder's .db3 and metadata.yaml in place changes

@@ -151,12 +151,10 @@ def read_recording(
     (`fleetmap.bags`; `topics`: a `BagTopics` where message types are ambiguous).
     """
     root = Path(root)
-    from fleetmap.bags import BagTopics, cached_tum, is_bag
+    from fleetmap.bags import is_bag, read_bag
 
-    source = None
     if is_bag(root):  # a ROS bag: read as the TUM folder it converts to (cached)
-        robot_id = robot_id or default_robot_id(root)
-        source, root = root, cached_tum(root, topics or BagTopics())
+        return read_bag(root, robot_id, intrinsics, require_depth, require_poses, topics)
     if not root.is_dir():
         if root.exists():  # a file: not "not found"
             raise BadRobotData(f"{root} is a file, not a robot folder nor a ROS bag")
@@ -189,10 +187,10 @@ def read_recording(
     native = _of_images(intrinsics, frames[0].rgb_path, origin, root)
     work = working_intrinsics(native)
     if work is None:
-        return Recording(robot_id, root, native, frames, source=source)
+        return Recording(robot_id, root, native, frames)
     n = native
     log.info("%s: %dx%d images read at %dx%d", robot_id, n.width, n.height, work.width, work.height)
-    return Recording(robot_id, root, work, frames, file_intrinsics=native, source=source)
+    return Recording(robot_id, root, work, frames, file_intrinsics=native)
 
 
 def default_robot_id(root: Path) -> str:

@@ -33,13 +33,14 @@ def write_bag(
     packed: str | None = None,
     k_zero: int = 0,
     info: bool = True,
+    k_times: float = 1.0,
 ) -> None:
     """A robot folder as a bag: colour (rgb8), depth (16UC1 mm or 32FC1 m), CameraInfo and
     PoseStamped, each message stamped with its frame's time (`zero_stamps`: every header's
     stamp 0, as a driver without a clock writes them; the bag's record times still differ).
     `packed` ("png", "jpeg"): colour as image_transport's CompressedImage in that format.
     `k_zero`: the first k_zero CameraInfo messages' K all zeros (an uncalibrated driver);
-    `info`: False, no CameraInfo topic."""
+    `info`: False, no CameraInfo topic; `k_times`: K scaled (0.007: a focal length in mm)."""
     from rosbags.typesys import Stores, get_typestore
 
     rec = read_recording(robot_dir)
@@ -89,7 +90,7 @@ def write_bag(
                 width=K.width,
                 distortion_model="plumb_bob",
                 d=np.zeros(5),
-                k=np.array([K.fx, 0, K.cx, 0, K.fy, K.cy, 0, 0, 1.0]) * (n >= k_zero),
+                k=np.array([K.fx, 0, K.cx, 0, K.fy, K.cy, 0, 0, 1.0]) * (n >= k_zero) * k_times,
                 r=np.eye(3).ravel(),
                 p=np.zeros(12),
                 binning_x=0,
@@ -228,3 +229,13 @@ def test_a_convert_that_fails_names_why_and_leaves_nothing(sun3d, tmp_path, caps
     assert main(["convert", str(empty), "-o", str(tmp_path / "e")]) == 1
     err = capsys.readouterr().err
     assert f"{empty}: the image topics ['/cam/color', '/cam/depth'] hold no message" in err
+
+
+def test_an_error_reading_a_bags_conversion_names_the_bag(sun3d, tmp_path):
+    """A bag whose conversion could not be read was named by the cache's folder, which the
+    user never made (an outside tester's 5 Hz odometry); the bag now comes first."""
+    bag = tmp_path / "mm_bag"
+    write_bag(sun3d / "robot_b", bag, frames=3, k_times=0.007)  # a focal length in mm
+    with pytest.raises(BadRobotData, match="intrinsics implausible") as exc:
+        read_recording(bag)
+    assert str(exc.value).startswith(f"{bag} (as converted: ")
