@@ -47,7 +47,8 @@ class BagTopics:
 
 
 def is_bag(path: Path) -> bool:
-    """A ROS 1 bag, a ROS 2 bag folder or a lone ROS 2 storage file."""
+    """A ROS 1 bag, a ROS 2 bag folder, or a lone ROS 2 storage file (taken as a bag to be
+    told that its folder is the bag: `_reader`)."""
     path = Path(path)
     if path.is_dir():
         return (path / "metadata.yaml").is_file()
@@ -107,7 +108,8 @@ def _reader(bag: Path):
 
     paths = [bag]
     if bag.is_file() and bag.suffix in (".mcap", ".db3"):
-        raise BadRobotData(f"{bag}: give the ROS 2 bag's folder (with metadata.yaml)")
+        where = f": {bag.parent}" if (bag.parent / "metadata.yaml").is_file() else ""
+        raise BadRobotData(f"{bag}: give the ROS 2 bag's folder (with metadata.yaml){where}")
     return AnyReader(paths, default_typestore=get_typestore(Stores.LATEST))
 
 

@@ -239,3 +239,14 @@ def test_an_error_reading_a_bags_conversion_names_the_bag(sun3d, tmp_path):
     with pytest.raises(BadRobotData, match="intrinsics implausible") as exc:
         read_recording(bag)
     assert str(exc.value).startswith(f"{bag} (as converted: ")
+
+
+def test_a_lone_ros2_storage_file_is_told_its_folder(sun3d, tmp_path):
+    """A ROS 2 bag's .db3 given alone: the bag is its folder (metadata.yaml), named."""
+    bag = tmp_path / "f_bag"
+    write_bag(sun3d / "robot_b", bag, frames=2)
+    (db3,) = bag.glob("*.db3")
+    assert is_bag(db3)
+    with pytest.raises(BadRobotData, match="give the ROS 2 bag's folder") as exc:
+        read_recording(db3)
+    assert str(exc.value).endswith(f"(with metadata.yaml): {bag}")
