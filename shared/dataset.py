@@ -170,8 +170,9 @@ def read_recording(
     has_depth = (root / "depth.txt").is_file()
     if require_depth and not has_depth:
         raise BadRobotData(f"Missing file: {root / 'depth.txt'}")
-    depth = read_list(root / "depth.txt") if has_depth else None
-    pose_t, poses = _poses(root / "groundtruth.txt", require_poses)
+    near = float(np.median([r[0] for r in rgb]))  # the clock the other lists are read in
+    depth = read_list(root / "depth.txt", near) if has_depth else None
+    pose_t, poses = _poses(root / "groundtruth.txt", require_poses, near)
 
     frames = _associated(root, rgb, depth, pose_t, poses)
     if not frames:
@@ -201,14 +202,14 @@ def default_robot_id(root: Path) -> str:
     return Path(root).resolve().stem if is_bag(root) else Path(root).resolve().name
 
 
-def _poses(gt: Path, required: bool) -> tuple[np.ndarray, list]:
+def _poses(gt: Path, required: bool, near: float | None = None) -> tuple[np.ndarray, list]:
     """groundtruth.txt's times and poses; none where the file is absent and not `required`.
     A file given that lists no pose (empty, comments only) is named, not read as none."""
     if not gt.is_file():
         if required:
             raise BadRobotData(f"Missing file: {gt}")
         return np.array([]), []
-    pose_t, poses = read_poses(gt)
+    pose_t, poses = read_poses(gt, near)
     if not poses:
         raise BadRobotData(f"{gt} lists no poses ('timestamp tx ty tz qx qy qz qw' lines)")
     return pose_t, poses

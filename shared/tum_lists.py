@@ -22,9 +22,10 @@ MAX_SECONDS = 1e11
 UNITS = (("nanoseconds", 1e-9, 1e17), ("microseconds", 1e-6, 1e14), ("milliseconds", 1e-3, 0))
 
 
-def read_list(path: Path) -> list[tuple[float, list[str]]]:
-    """Parse a TUM text list: '#' comments and blank lines skipped, sorted by time; a line
-    that does not start with a timestamp is BadRobotData naming it."""
+def read_list(path: Path, near: float | None = None) -> list[tuple[float, list[str]]]:
+    """Parse a TUM text list: '#' comments and blank lines skipped, sorted by time, in
+    seconds (`in_seconds`; `near`: the colour list's median time in seconds); a line that
+    does not start with a timestamp is BadRobotData naming it."""
     if not path.is_file():
         raise BadRobotData(f"Missing file: {path}")
     rows = []
@@ -43,16 +44,22 @@ def read_list(path: Path) -> list[tuple[float, list[str]]]:
             raise BadRobotData(f"{path}:{n}: non-finite timestamp")
         rows.append((stamp, parts[1:]))
     rows.sort(key=lambda r: r[0])
-    return in_seconds(path, rows)
+    return in_seconds(path, rows, near)
 
 
-def in_seconds(path: Path, rows: list) -> list:
+def in_seconds(path: Path, rows: list, near: float | None = None) -> list:
     """`rows` with their times in seconds: those of a list whose times reach MAX_SECONDS
-    (ROS writes nanoseconds) divided into seconds, as `UNITS` reads them, and said."""
+    (ROS writes nanoseconds) divided into seconds, as `UNITS` reads them, and said; with
+    `near` (the colour list's median time, seconds), in the unit that brings the list's
+    median nearest it (an outside tester's poses in nanoseconds since boot, 6.2e12, beside
+    images in seconds since boot, 6239: read as milliseconds, no frame had a pose)."""
     big = max((abs(t) for t, _ in rows), default=0.0)
     if big < MAX_SECONDS:
         return rows
     unit, factor = next((u, f) for u, f, lo in UNITS if big >= lo)
+    if near is not None:
+        mid = float(np.median([t for t, _ in rows]))
+        unit, factor = min(((u, f) for u, f, _ in UNITS), key=lambda uf: abs(mid * uf[1] - near))
     log.warning(
         "%s: times up to %.4g read as %s (a Unix time in seconds stays under %g until the "
         "year 5138)", path, big, unit, MAX_SECONDS,
@@ -126,9 +133,10 @@ def poses_at(t: np.ndarray, pose_t: np.ndarray, poses: list, max_gap: float) -> 
 QUATERNION_SLACK = 0.05
 
 
-def read_poses(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """`groundtruth.txt`'s times and camera-to-map poses ("timestamp tx ty tz qx qy qz qw")."""
-    rows = read_list(path)
+def read_poses(path: Path, near: float | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    """`groundtruth.txt`'s times and camera-to-map poses ("timestamp tx ty tz qx qy qz qw");
+    `near` as `read_list`'s."""
+    rows = read_list(path, near)
     stamps, poses, norms = [], [], []
     for stamp, vals in rows:
         if len(vals) < 7:

@@ -452,3 +452,20 @@ def test_a_pose_track_at_its_bound_and_stamps_listed_twice(tum_robot, caplog):
     with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
         read_recording(tum_robot)
     assert "1 times listed twice with different poses: the first of each taken" in caplog.text
+
+
+def test_poses_in_nanoseconds_since_boot_beside_images_in_seconds(tum_robot, caplog):
+    """Images stamped in seconds since boot (6102 s) and poses in nanoseconds since boot
+    (6.1e12): the poses were read as milliseconds (their size alone chose the unit) and no
+    frame had a pose (an outside tester's review). A list's unit is now the one that puts
+    it nearest the colour list's times."""
+    boot = 1305025000.0
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        path = tum_robot / name
+        rows = [ln.split() for ln in path.read_text().splitlines() if not ln.startswith("#")]
+        unit = 1e9 if name == "groundtruth.txt" else 1.0
+        path.write_text("".join(
+            f"{(float(r[0]) - boot) * unit:.4f} {' '.join(r[1:])}\n" for r in rows))  # fmt: skip
+    with caplog.at_level("WARNING", logger="fleetmap.tum_lists"):
+        rec = read_recording(tum_robot)
+    assert len(rec) == 2 and "read as nanoseconds" in caplog.text
