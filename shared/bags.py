@@ -20,7 +20,7 @@ import itertools
 import json
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -81,8 +81,6 @@ def read_bag(bag: Path, robot_id, intrinsics, require_depth, require_poses, topi
     """`dataset.read_recording` of the TUM folder a ROS bag converts to (`cached_tum`), its
     errors naming the bag (they named the cache's folder, which the user never made: an
     outside tester's 5 Hz odometry), the bag as the recording's `source`."""
-    import dataclasses
-
     from fleetmap.dataset import default_robot_id, read_recording
 
     tum = cached_tum(bag, topics or BagTopics())
@@ -91,7 +89,7 @@ def read_bag(bag: Path, robot_id, intrinsics, require_depth, require_poses, topi
                              require_poses)  # fmt: skip
     except BadRobotData as exc:
         raise BadRobotData(f"{bag} (as converted: {exc})") from None
-    return dataclasses.replace(rec, source=bag)
+    return replace(rec, source=bag)
 
 
 def _bag_state(bag: Path) -> list:
@@ -246,6 +244,12 @@ def _camera(msg) -> dict:
     }
 
 
+def _calibrated(camera: dict) -> dict | None:
+    """camera.json's contents where they give a focal length; None for an uncalibrated
+    driver's CameraInfo (K all zeros), so that a later message's are taken."""
+    return camera if camera["fx"] > 0 and camera["fy"] > 0 else None
+
+
 def _written(msg, kind: str, stamp: float, out: Path) -> str:
     """A pose ("gt") as its list line, or an image ("rgb", "depth") written to `out` and
     its list line."""
@@ -309,8 +313,8 @@ def bag_to_tum(bag: Path, out: Path, topics: BagTopics = BagTopics()) -> Path:
         wanted = [rgb_c, depth_c, info_c, pose_c]
         seen: dict[str, set] = {"rgb": set(), "depth": set(), "gt": set()}
         for n, conn, msg in _messages(reader, wanted, bag):
-            if conn.topic == info_c.topic:  # the first that gives a focal length
-                camera = camera or (c if (c := _camera(msg))["fx"] > 0 < c["fy"] else None)
+            if conn.topic == info_c.topic:
+                camera = camera or _calibrated(_camera(msg))
                 continue
             stamp = _stamp(msg)
             kind = {pose_c.topic: "gt", depth_c.topic: "depth"}.get(conn.topic, "rgb")
