@@ -67,6 +67,7 @@ def stream(recs, kf_index, client, vocab_path, speed: float, quiet: bool, worker
         stop.set()
         raise
     finally:
+        keyframes.close()  # the extraction's queued frames cancelled now, not when collected
         if errors:  # a poster failed: the others need not finish
             stop.set()
         for r in ids:
