@@ -35,9 +35,7 @@ def stream(recs, kf_index, client, vocab_path, speed: float, quiet: bool, worker
     errors: list[BaseException] = []
     bar = tqdm(total=total, desc="stream", unit="kf", disable=quiet)
     t0 = time.monotonic()
-    # set on an interrupt or a failure: posters stop at once, not after their queued
-    # keyframes (Ctrl-C at --speed 0.1 went on posting for about 8 s)
-    stop = threading.Event()
+    stop = threading.Event()  # an interrupt or a failure: posters stop at once (they went on)
 
     def post(k: int, robot: str) -> None:
         try:
@@ -67,13 +65,12 @@ def stream(recs, kf_index, client, vocab_path, speed: float, quiet: bool, worker
         stop.set()
         raise
     finally:
-        keyframes.close()  # the extraction's queued frames cancelled now, not when collected
         if errors:  # a poster failed: the others need not finish
             stop.set()
         for r in ids:
             _put_done(queues[r], stop)
-        for p in posters:
-            p.join()
+        for p in posters:  # stopped: a request in flight is not waited for (daemon threads)
+            p.join(None if not stop.is_set() else 0.0)
         bar.close()
     if errors:
         raise errors[0]

@@ -140,10 +140,11 @@ def test_an_interrupted_stream_posts_nothing_more(tmp_path, tum_rpy):
 
         cmd = [sys.executable, "-m", "fleetmap.services.cli", "-q", "stream", str(robot)]
         proc = subprocess.Popen(
-            # in session 60's clean clone the interrupted stream took over 60 s to exit at
-            # the suite's load (3-12 s alone, and beside two spinning processes); not pinned:
-            # at its default niceness (10) beside the other worker's merges it gets a small
-            # share of the cores, which is not what this tests
+            # in session 60's clean clones the interrupted stream took over 60 s to exit at
+            # the suite's load, twice (under 1 s alone, beside three spinning processes and
+            # beside two recall merges); not pinned. The stream now waits for no request in
+            # flight once stopped, and runs here at niceness 0: its default (10) beside the
+            # other worker's merges is not what this tests
             [*cmd, "--place-db", url, "--speed", "0.1", "--nice", "0"],
             stderr=subprocess.PIPE,
             text=True,
