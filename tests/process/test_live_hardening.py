@@ -15,6 +15,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
+import pytest
 import uvicorn
 from fastapi.testclient import TestClient
 
@@ -148,7 +149,7 @@ def test_an_interrupted_stream_posts_nothing_more(tmp_path, tum_rpy):
             [*cmd, "--place-db", url, "--speed", "0.1", "--nice", "0"],
             stderr=subprocess.PIPE,
             text=True,
-            env={**os.environ, "FLEETMAP_PLACE_DB_URL": url},
+            env={**os.environ, "FLEETMAP_PLACE_DB_URL": url, "PYTHONFAULTHANDLER": "1"},
         )
         try:
             end = time.monotonic() + 120
@@ -157,7 +158,13 @@ def test_an_interrupted_stream_posts_nothing_more(tmp_path, tum_rpy):
                 time.sleep(0.1)
             before = posted()
             proc.send_signal(signal.SIGINT)
-            _, err = proc.communicate(timeout=60)
+            try:
+                _, err = proc.communicate(timeout=60)
+            except subprocess.TimeoutExpired:  # its threads' stacks, for the next look
+                proc.send_signal(signal.SIGABRT)
+                pytest.fail(
+                    f"no exit 60 s after SIGINT:\n{proc.communicate(timeout=30)[1][-6000:]}"
+                )
         finally:
             proc.kill()
         assert proc.returncode == 130 and "interrupted" in err, err
