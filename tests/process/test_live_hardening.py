@@ -140,32 +140,32 @@ def test_an_interrupted_stream_posts_nothing_more(tmp_path, tum_rpy):
             return sum(r["keyframes"] for r in robots)
 
         cmd = [sys.executable, "-m", "fleetmap.services.cli", "-q", "stream", str(robot)]
-        proc = subprocess.Popen(
-            # in session 60's clean clones the interrupted stream took over 60 s to exit at
-            # the suite's load, twice (under 1 s alone, beside three spinning processes and
-            # beside two recall merges); not pinned. The stream now waits for no request in
-            # flight once stopped, and runs here at niceness 0: its default (10) beside the
-            # other worker's merges is not what this tests
-            [*cmd, "--place-db", url, "--speed", "0.1", "--nice", "0"],
-            stderr=subprocess.PIPE,
-            text=True,
-            env={**os.environ, "FLEETMAP_PLACE_DB_URL": url, "PYTHONFAULTHANDLER": "1"},
-        )
+        log = tmp_path / "stream.err"  # a file: the extraction's processes hold no pipe open
+        with open(log, "w") as err_file:
+            proc = subprocess.Popen(
+                # in session 60's clean clones the interrupted stream took over 60 s to exit
+                # at the suite's load, three times (under 5 s alone, beside spinning processes
+                # and beside two recall merges); not pinned. Niceness 0: its default (10)
+                # beside the other worker's merges is not what this tests
+                [*cmd, "--place-db", url, "--speed", "0.1", "--nice", "0"],
+                stderr=err_file,
+                env={**os.environ, "FLEETMAP_PLACE_DB_URL": url, "PYTHONFAULTHANDLER": "1"},
+            )
         try:
             end = time.monotonic() + 120
             while posted() < 2:
-                assert proc.poll() is None and time.monotonic() < end, proc.stderr.read()
+                assert proc.poll() is None and time.monotonic() < end, log.read_text()
                 time.sleep(0.1)
             before = posted()
             proc.send_signal(signal.SIGINT)
             try:
-                _, err = proc.communicate(timeout=60)
+                proc.wait(timeout=60)
             except subprocess.TimeoutExpired:  # its threads' stacks, for the next look
                 proc.send_signal(signal.SIGABRT)
-                pytest.fail(
-                    f"no exit 60 s after SIGINT:\n{proc.communicate(timeout=30)[1][-6000:]}"
-                )
+                proc.wait(timeout=30)
+                pytest.fail(f"no exit 60 s after SIGINT:\n{log.read_text()[-8000:]}")
         finally:
             proc.kill()
+        err = log.read_text()
         assert proc.returncode == 130 and "interrupted" in err, err
         assert posted() <= before + 1  # at most the one in flight
