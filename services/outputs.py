@@ -46,13 +46,7 @@ def prepare_out(out: Path, robots=()) -> PreviousRun:
         raise BadInput(f"--out {out}: trajectories is a file, where this writes a folder")
     previous = PreviousRun.of(out)
     for folder in (out, tracks):  # made, and written to once
-        probe = folder / ".fleetmap-probe"
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            probe.write_bytes(b"")
-            probe.unlink()
-        except OSError as exc:
-            raise BadInput(f"--out {folder}: cannot write there ({exc.strerror})") from None
+        _writable(folder, ".fleetmap-probe", f"--out {folder}")
     return previous
 
 
@@ -129,13 +123,18 @@ def prepare_file(path: Path, flag: str = "-o") -> None:
     missing and written to once, the name not a folder."""
     if path.is_dir():
         raise BadInput(f"{flag} {path} is a folder, where this writes a file")
-    probe = path.parent / f".{path.name}.probe"
+    _writable(path.parent, f".{path.name}.probe", f"{flag} {path}")
+
+
+def _writable(folder: Path, probe: str, named: str) -> None:
+    """`folder` made where missing and a file `probe` written there once; BadInput naming
+    `named` where it cannot be."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        probe.write_bytes(b"")
-        probe.unlink()
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / probe).write_bytes(b"")
+        (folder / probe).unlink()
     except OSError as exc:
-        raise BadInput(f"{flag} {path}: cannot write there ({exc.strerror})") from None
+        raise BadInput(f"{named}: cannot write there ({exc.strerror})") from None
 
 
 def prepare_empty(out: Path) -> None:
