@@ -3,7 +3,8 @@ beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
         [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR] [--scale 0.4]
-        [--frames 2] [--depth-noise d435] [--other-camera] [--bins "<10%" none]
+        [--frames 2] [--depth-noise d435] [--other-camera] [--other-exposure 1.6]
+        [--bins "<10%" none]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then
 hl_b, both in hl_a's frame through T_a_b.txt; TUM fr1_rpy: one sequence). Windows of a few
@@ -33,6 +34,11 @@ the issue's RealSense desk from the data at hand.
 `--other-camera`: robot B of every pair as another camera recorded it
 (`simulate.other_camera`: the central three quarters of the rows, 4:3 -> 16:9, resized x
 1.325: 640 x 480 -> 848 x 477, intrinsics moved with them): a fleet of mixed sensors.
+
+`--other-exposure GAIN`: robot B's colour as a camera of another exposure and colour response
+would record it (`simulate.other_exposure`: the levels through a gamma of 0.8, x GAIN and a
+white balance of 1.1 / 1.0 / 0.85 on red, green and blue, clipped to 8 bits): robots whose
+auto-exposure settled apart (facing a window, a dark corner) or cameras of other makes.
 
 Where fleetmap is not right, B's map is also moved by ICP from the truth into A's
 (`truth_basin`): where that moves it beyond 5 cm on a pair sharing 20% or more, the maps'
@@ -68,7 +74,7 @@ from fleetmap.fleet.view_choice import load_view  # noqa: E402
 from fleetmap.geometry import apply  # noqa: E402
 from fleetmap.lazy import LazyModule  # noqa: E402
 from fleetmap.mapcloud import icp, views_cloud  # noqa: E402
-from fleetmap.simulate import D435_SIGMA_1M, other_camera  # noqa: E402
+from fleetmap.simulate import D435_SIGMA_1M, other_camera, other_exposure  # noqa: E402
 
 o3d = LazyModule("open3d")
 DATA = ROOT.parent / "shared" / "data"
@@ -172,10 +178,12 @@ def run_pair(
     scale: float = 1.0,
     depth_noise: float = 0.0,
     mixed: bool = False,
+    exposure: float | None = None,
 ) -> dict:
     """fleetmap merge on the pair's two windows (their scene x `scale`, seen by a camera
-    with `depth_noise` more; B's by another camera where `mixed`), the recipe beside it;
-    errors at the recording's size."""
+    with `depth_noise` more; B's by another camera where `mixed`, its colour exposed by
+    `exposure` through another response where given), the recipe beside it; errors at the
+    recording's size."""
     T_common = {}
     for spec in specs.values():
         T_common |= {str(f): T for f, T in spec["segments"]}
@@ -185,6 +193,8 @@ def run_pair(
         cut_recording(folder, sl, work / f"p{k}" / r, M[r], scale, depth_noise)
         if mixed and r == "B":
             other_camera(work / f"p{k}" / r)
+        if exposure is not None and r == "B":
+            other_exposure(work / f"p{k}" / r, exposure)
         dirs.append(f"{r}={work / f'p{k}' / r}")
     out = work / f"p{k}-out"
     t = time.perf_counter()
@@ -377,6 +387,13 @@ def main() -> None:
         help="robot B as a 16:9 camera of 848 x 477 would record it (a fleet of mixed sensors)",
     )
     ap.add_argument(
+        "--other-exposure",
+        type=float,
+        metavar="GAIN",
+        help="robot B's colour as a camera of another exposure (x GAIN, clipped) and colour "
+        "response (gamma 0.8, white balance 1.1 / 1.0 / 0.85) would record it",
+    )
+    ap.add_argument(
         "--frames",
         type=int,
         default=1,
@@ -448,6 +465,7 @@ def main() -> None:
                 args.scale,
                 noise,
                 args.other_camera,
+                args.other_exposure,
             )
             row |= {"pair": k, "frame": f}
             rows.append(row)

@@ -255,3 +255,37 @@ def other_camera(folder: Path, rows: float = 0.75, factor: float = 1.325) -> Pat
                 raise OSError(f"cannot write {p}")
     (folder / "camera.json").write_text(json.dumps(cam))
     return folder
+
+
+#: A camera's other colour response, for `other_exposure`: a gamma on the normalised
+#: levels and a white balance (red, green, blue gains) beside its exposure gain.
+OTHER_GAMMA, OTHER_WHITE = 0.8, (1.1, 1.0, 0.85)
+
+
+def other_exposure(
+    folder: Path, gain: float, gamma: float = OTHER_GAMMA, white=OTHER_WHITE
+) -> Path:
+    """A robot folder (as `dataset.cut_recording` writes it) as a camera of another exposure
+    and colour response would have recorded it: every colour level (0..1) raised to
+    `gamma`, times `gain` and each channel's `white` gain (red, green, blue), clipped to
+    the 8 bits (a `gain` over 1 saturates the highlights, under 1 crushes the shadows
+    into fewer levels). Robots whose cameras expose differently (auto-exposure facing a
+    window or a dark corner, another model's gamma and white balance), for benchmarks and
+    tests; the depth untouched. Images are written anew, in their own format: a hard link
+    into the source recording is removed first, never written through."""
+    if not (gain > 0 and gamma > 0 and len(white) == 3 and all(w > 0 for w in white)):
+        raise ValueError(
+            f"a positive gain, gamma and three white gains, not {gain}, {gamma}, {white}"
+        )
+    bgr = np.asarray(white[::-1], np.float64) * gain  # OpenCV's channel order
+    levels = (np.arange(256) / 255.0) ** gamma
+    lut = np.clip(np.round(255 * levels[:, None] * bgr[None, :]), 0, 255).astype(np.uint8)
+    for p in sorted((folder / "rgb").iterdir()):
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if img is None:
+            raise OSError(f"cannot read {p}")
+        out = np.stack([lut[img[..., c], c] for c in range(3)], axis=-1)
+        p.unlink()  # a hard link: the source's file stays as it is
+        if not cv2.imwrite(str(p), out):
+            raise OSError(f"cannot write {p}")
+    return folder
