@@ -14,7 +14,7 @@ from fleetmap.align.types import AlignParams, Hypothesis
 from fleetmap.align.validation import outnumbers
 from fleetmap.correspondences import Correspondences
 from fleetmap.geometry import apply, displacement_rms, invert, residuals, transform_error
-from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, overlap_fitness
+from fleetmap.mapcloud import REG, SeenDepth, free_space_check, icp, o3d, overlap_fitness
 from fleetmap.registration import ransac_guided, ransac_rigid
 
 log = logging.getLogger(__name__)
@@ -312,15 +312,16 @@ def depth_refinement(T0: np.ndarray, clouds, p: AlignParams) -> np.ndarray:
 
 def colour_icp(T: np.ndarray, clouds, scales, iterations: int) -> np.ndarray | None:
     """T_a_b refined by Open3D's coloured ICP of B's cloud onto A's at each voxel of
-    `scales` in turn (within 1.5 voxels), or None where the clouds lack colour or too few
-    points have colour gradients."""
+    `scales` in turn (within 1.5 voxels), B's grey levels matched to A's where they meet
+    (`exposure_matched`), or None where the clouds lack colour or too few points have
+    colour gradients."""
     for v in scales:
         ca, cb = clouds[0].at(v), clouds[1].at(v, normals=False)
         if not (ca.has_colors() and cb.has_colors()):
             return None
         try:
             r = REG.registration_colored_icp(
-                cb,
+                exposure_matched(cb, ca, T, 1.5 * v),
                 ca,
                 1.5 * v,
                 T,
@@ -331,6 +332,38 @@ def colour_icp(T: np.ndarray, clouds, scales, iterations: int) -> np.ndarray | N
             return None
         T = np.asarray(r.transformation)
     return T
+
+
+#: Point pairs `exposure_matched` needs to match two maps' grey levels: ten a quantile bin.
+EXPOSURE_PAIRS = 10 * 20
+
+
+def exposure_matched(source, target, T: np.ndarray, distance: float):
+    """`source` (an Open3D cloud with colours) in grey levels matched to `target`'s where
+    the two meet: the source points within `distance` of the target under T and the target
+    points they meet, each set's grey levels (the mean of red, green and blue, as coloured
+    ICP reads them) at every 5% quantile, and each source level carried to the target's
+    level at its quantile (histogram specification; levels between quantiles linearly).
+    Coloured ICP takes a difference of brightness for a displacement: robots whose cameras
+    expose differently (auto-exposure settled facing a window or a dark corner, another
+    make's gamma and white balance) slid its result 1-3 cm on four real pairs, 0.8-2.9 mm
+    matched (docs/ALIGNER.md, session 61). `source` itself where fewer than
+    `EXPOSURE_PAIRS` points meet; otherwise a copy, grey."""
+    pairs = np.asarray(REG.evaluate_registration(source, target, distance, T).correspondence_set)
+    if len(pairs) < EXPOSURE_PAIRS:
+        return source
+    grey_s = np.asarray(source.colors).mean(1)
+    grey_t = np.asarray(target.colors).mean(1)
+    q = np.linspace(0, 1, 21)
+    xs, xt = np.quantile(grey_s[pairs[:, 0]], q), np.quantile(grey_t[pairs[:, 1]], q)
+    # a level held by several quantiles (a clipped highlight, a crushed shadow) is carried
+    # to the mean of the target's levels at them
+    xs, tie = np.unique(xs, return_inverse=True)
+    xt = np.bincount(tie, xt) / np.bincount(tie)
+    grey = np.interp(grey_s, xs, xt) if len(xs) > 1 else np.full_like(grey_s, xt[0])
+    out = o3d.geometry.PointCloud(source)
+    out.colors = o3d.utility.Vector3dVector(np.repeat(grey[:, None], 3, axis=1))
+    return out
 
 
 def surface_rmse(source, target, T: np.ndarray, distance: float) -> float:
