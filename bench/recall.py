@@ -3,7 +3,7 @@ beside the map_merge_3d recipe.
 
     .venv/bin/python bench/recall.py [--data ../shared/data] [--seeds 1] [--per-bin 3]
         [--only sun3d hololens tum_rpy cross] [--json out.json] [--keep DIR] [--scale 0.4]
-        [--frames 2] [--depth-noise d435] [--other-camera] [--other-exposure 1.6]
+        [--frames 2] [--depth-noise d435] [--other-camera] [--other-exposure 0.6]
         [--bins "<10%" none]
 
 Each recording is one timeline (SUN3D: robot_a then robot_b; the HoloLens walk: hl_a then

@@ -346,8 +346,8 @@ def exposure_matched(source, target, T: np.ndarray, distance: float):
     level at its quantile (histogram specification; levels between quantiles linearly).
     Coloured ICP takes a difference of brightness for a displacement: robots whose cameras
     expose differently (auto-exposure settled facing a window or a dark corner, another
-    make's gamma and white balance) slid its result 1-3 cm on four real pairs, 0.8-2.9 mm
-    matched (docs/ALIGNER.md, session 61). `source` itself where fewer than
+    make's gamma and white balance) moved five real pairs' refinements 10-31 mm, the desk's
+    0.2-1.8 mm once matched (docs/ALIGNER.md, session 61). `source` itself where fewer than
     `EXPOSURE_PAIRS` points meet; otherwise a copy, grey."""
     pairs = np.asarray(REG.evaluate_registration(source, target, distance, T).correspondence_set)
     if len(pairs) < EXPOSURE_PAIRS:
