@@ -297,7 +297,7 @@ def _refinements(T0: np.ndarray, clouds, p: AlignParams) -> list[tuple[np.ndarra
     refined = [(depth_refinement(T0, clouds, p), "+icp")]
     if not (p.colour_icp and ca1.has_colors() and cb1.has_colors()):
         return refined
-    T = colour_icp(T0, clouds, (4 * v1 / 3, 2 * v1 / 3), 20)
+    T = colour_icp(T0, clouds, (4 * v1 / 3, 2 * v1 / 3), 20, p.match_exposure)
     return refined if T is None else [*refined, (T, "+colour")]
 
 
@@ -310,18 +310,20 @@ def depth_refinement(T0: np.ndarray, clouds, p: AlignParams) -> np.ndarray:
     return icp(clouds[1].at(v1, normals=False), clouds[0].at(v1), T, (v1,), 20)[0]
 
 
-def colour_icp(T: np.ndarray, clouds, scales, iterations: int) -> np.ndarray | None:
+def colour_icp(
+    T: np.ndarray, clouds, scales, iterations: int, match_exposure: bool = False
+) -> np.ndarray | None:
     """T_a_b refined by Open3D's coloured ICP of B's cloud onto A's at each voxel of
     `scales` in turn (within 1.5 voxels), B's grey levels matched to A's where they meet
-    (`exposure_matched`), or None where the clouds lack colour or too few points have
-    colour gradients."""
+    if `match_exposure` (`exposure_matched`), or None where the clouds lack colour or too
+    few points have colour gradients."""
     for v in scales:
         ca, cb = clouds[0].at(v), clouds[1].at(v, normals=False)
         if not (ca.has_colors() and cb.has_colors()):
             return None
         try:
             r = REG.registration_colored_icp(
-                exposure_matched(cb, ca, T, 1.5 * v),
+                exposure_matched(cb, ca, T, 1.5 * v) if match_exposure else cb,
                 ca,
                 1.5 * v,
                 T,

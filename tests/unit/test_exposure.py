@@ -1,6 +1,6 @@
-"""Coloured ICP between robots whose cameras expose differently (`hypotheses.exposure_matched`):
-B's grey levels are matched to A's where the maps meet, so a brightness difference is not
-taken for a displacement."""
+"""Coloured ICP between robots whose cameras expose differently (`hypotheses.exposure_matched`,
+opt-in: `AlignParams.match_exposure`): B's grey levels are matched to A's where the maps
+meet, so a brightness difference is not taken for a displacement."""
 
 import numpy as np
 import pytest
@@ -39,7 +39,7 @@ def test_a_robot_exposed_otherwise_is_refined_where_it_was(sun3d, tmp_path):
     landed = {}
     for gain in (None, 0.6, 1.3):
         B = robot_cloud(src, slice(2, 15, 4), tmp_path / f"B{gain}", gain)
-        landed[gain] = colour_icp(T0, (A, B), (0.04, 0.02), 20)
+        landed[gain] = colour_icp(T0, (A, B), (0.04, 0.02), 20, match_exposure=True)
     probe = np.asarray(B.at(0.05, normals=False).points)
     for gain, T in landed.items():
         assert np.linalg.norm(apply(T, probe) - probe, axis=1).mean() < 0.01, gain
