@@ -250,9 +250,7 @@ def other_camera(folder: Path, rows: float = 0.75, factor: float = 1.325) -> Pat
             img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)[top:bottom]
             how = cv2.INTER_CUBIC if factor > 1 else cv2.INTER_AREA
             how = cv2.INTER_NEAREST if sub == "depth" else how
-            p.unlink()  # a hard link: the source's file stays as it is
-            if not cv2.imwrite(str(p), cv2.resize(img, (w, h), interpolation=how)):
-                raise OSError(f"cannot write {p}")
+            _write_anew(p, cv2.resize(img, (w, h), interpolation=how))
     (folder / "camera.json").write_text(json.dumps(cam))
     return folder
 
@@ -285,7 +283,13 @@ def other_exposure(
         if img is None:
             raise OSError(f"cannot read {p}")
         out = np.stack([lut[img[..., c], c] for c in range(3)], axis=-1)
-        p.unlink()  # a hard link: the source's file stays as it is
-        if not cv2.imwrite(str(p), out):
-            raise OSError(f"cannot write {p}")
+        _write_anew(p, out)
     return folder
+
+
+def _write_anew(path: Path, img: np.ndarray) -> None:
+    """`img` written to `path` as a new file: a hard link into the source recording
+    (`dataset.cut_recording`'s) is removed first, never written through."""
+    path.unlink()
+    if not cv2.imwrite(str(path), img):
+        raise OSError(f"cannot write {path}")
