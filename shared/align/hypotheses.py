@@ -349,20 +349,30 @@ def exposure_matched(source, target, T: np.ndarray, distance: float):
     Coloured ICP takes a difference of brightness for a displacement: robots whose cameras
     expose differently (auto-exposure settled facing a window or a dark corner, another
     make's gamma and white balance) moved five real pairs' refinements 10-31 mm, the desk's
-    0.2-1.8 mm once matched (docs/ALIGNER.md, session 61). `source` itself where fewer than
-    `EXPOSURE_PAIRS` points meet; otherwise a copy, grey."""
+    0.2-1.8 mm once matched (docs/ALIGNER.md, session 61). Only where the difference is
+    the cameras': where the mapping explains less of the pairs' grey difference than it
+    leaves (median |A - B| over sqrt(2) or more after it: a global mapping and the pairs'
+    own scatter add in quadrature), the levels differ by what each robot saw of the overlap
+    (highlights, viewpoints; the HoloLens walk's ratio 0.8-1.0 at one exposure, B exposed
+    x0.6 or x1.3 0.19-0.59) and matching them moved two right merges 2-3 cm (session 62):
+    `source` itself then, as where fewer than `EXPOSURE_PAIRS` points meet; otherwise a
+    copy, grey."""
     pairs = np.asarray(REG.evaluate_registration(source, target, distance, T).correspondence_set)
     if len(pairs) < EXPOSURE_PAIRS:
         return source
     grey_s = np.asarray(source.colors).mean(1)
     grey_t = np.asarray(target.colors).mean(1)
     q = np.linspace(0, 1, 21)
-    xs, xt = np.quantile(grey_s[pairs[:, 0]], q), np.quantile(grey_t[pairs[:, 1]], q)
+    gt = grey_t[pairs[:, 1]]
+    xs, xt = np.quantile(grey_s[pairs[:, 0]], q), np.quantile(gt, q)
     # a level held by several quantiles (a clipped highlight, a crushed shadow) is carried
     # to the mean of the target's levels at them
     xs, tie = np.unique(xs, return_inverse=True)
     xt = np.bincount(tie, xt) / np.bincount(tie)
     grey = np.interp(grey_s, xs, xt) if len(xs) > 1 else np.full_like(grey_s, xt[0])
+    left, before = (np.median(np.abs(gt - g[pairs[:, 0]])) for g in (grey, grey_s))
+    if left * np.sqrt(2) >= before:
+        return source
     out = o3d.geometry.PointCloud(source)
     out.colors = o3d.utility.Vector3dVector(np.repeat(grey[:, None], 3, axis=1))
     return out

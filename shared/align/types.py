@@ -103,10 +103,10 @@ class AlignParams:
     rival_deg: float = 10.0
     use_icp: bool = True
     colour_icp: bool = True
-    # coloured ICP on B's grey levels matched to A's where the maps meet (opt-in, for robots
-    # whose cameras expose differently: recall seed 111 through x0.6, 2.59 -> 2.10 cm mean;
-    # at one exposure, two HoloLens recall merges 3.5 -> 6.0 cm: docs/ALIGNER.md, session 61)
-    match_exposure: bool = False
+    # coloured ICP on B's grey levels matched to A's where the maps meet and the cameras
+    # differ (`hypotheses.exposure_matched`: recall seed 111 through x0.6, 2.59 -> 2.10 cm
+    # mean; docs/ALIGNER.md, sessions 61-62)
+    match_exposure: bool = True
     try_mlp: bool = True
     min_spread_rel: float = 0.075  # or this share of the views' median depth, if less
     decisive_consistency: float = 0.95  # firm free-space consistency: geometry that decides

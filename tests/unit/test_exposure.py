@@ -1,6 +1,6 @@
 """Coloured ICP between robots whose cameras expose differently (`hypotheses.exposure_matched`,
-opt-in: `AlignParams.match_exposure`): B's grey levels are matched to A's where the maps
-meet, so a brightness difference is not taken for a displacement."""
+`AlignParams.match_exposure`): B's grey levels are matched to A's where the maps meet and
+differ by the cameras, so a brightness difference is not taken for a displacement."""
 
 import numpy as np
 import pytest
@@ -73,6 +73,23 @@ def test_grey_levels_are_carried_to_the_other_maps_where_they_meet():
     assert exposure_matched(source, target, away, 0.01) is source
     few = cloud(pts[: EXPOSURE_PAIRS - 1], level[: EXPOSURE_PAIRS - 1])
     assert exposure_matched(few, target, np.eye(4), 0.01) is few
+
+
+def test_levels_that_differ_by_what_each_robot_saw_are_left_as_they_are():
+    """Where both cameras expose alike and the pairs' grey levels scatter (highlights seen
+    from one side, shadows of the robot, pairs a voxel apart), the mapping fitted to them
+    explains little of the difference (a median of 0.08 left of 0.09, as on the HoloLens
+    walk's pairs) and the source is left as it is; a gain on top of the same scatter is
+    matched."""
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(0, 1, (4000, 3))
+    level = rng.uniform(0.1, 0.8, 4000)
+    target = cloud(pts, level)
+    seen = np.clip(level + rng.normal(0, 0.12, 4000), 0, 1)
+    same = cloud(pts, seen)
+    assert exposure_matched(same, target, np.eye(4), 0.01) is same
+    darker = cloud(pts, 0.6 * seen)
+    assert exposure_matched(darker, target, np.eye(4), 0.01) is not darker
 
 
 @pytest.mark.parametrize("gain", [0, -1.0, float("nan")])
