@@ -363,16 +363,19 @@ def exposure_matched(source, target, T: np.ndarray, distance: float):
     grey_s = np.asarray(source.colors).mean(1)
     grey_t = np.asarray(target.colors).mean(1)
     q = np.linspace(0, 1, 21)
-    gt = grey_t[pairs[:, 1]]
-    xs, xt = np.quantile(grey_s[pairs[:, 0]], q), np.quantile(gt, q)
+    gs, gt = grey_s[pairs[:, 0]], grey_t[pairs[:, 1]]
+    xs, xt = np.quantile(gs, q), np.quantile(gt, q)
     # a level held by several quantiles (a clipped highlight, a crushed shadow) is carried
     # to the mean of the target's levels at them
     xs, tie = np.unique(xs, return_inverse=True)
     xt = np.bincount(tie, xt) / np.bincount(tie)
-    grey = np.interp(grey_s, xs, xt) if len(xs) > 1 else np.full_like(grey_s, xt[0])
-    left, before = (np.median(np.abs(gt - g[pairs[:, 0]])) for g in (grey, grey_s))
-    if left * np.sqrt(2) >= before:
+
+    def mapped(g):
+        return np.interp(g, xs, xt) if len(xs) > 1 else np.full_like(g, xt[0])
+
+    if np.median(np.abs(gt - mapped(gs))) * np.sqrt(2) >= np.median(np.abs(gt - gs)):
         return source
+    grey = mapped(grey_s)
     out = o3d.geometry.PointCloud(source)
     out.colors = o3d.utility.Vector3dVector(np.repeat(grey[:, None], 3, axis=1))
     return out
